@@ -150,7 +150,10 @@ def detector_tilt_deg(speed_mm_s: float, readout_s: float, sensor_height_mm: flo
 
 
 def focal_plane_tilt_deg(
-    focal_length_mm: float, start_image_distance_mm: float, sensor_height_mm: float, detector_tilt: float
+    focal_length_mm: float,
+    start_image_distance_mm: float,
+    sensor_height_mm: float,
+    detector_tilt: float,
 ) -> float:
     """Scheimpflug tilt ``phi`` of the focal plane for a detector tilt ``theta`` (Eq. 9).
 

@@ -40,6 +40,7 @@ form derived from Eq. 4 (tests check both against quadrature of Eq. 5).
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -57,7 +58,9 @@ _GL_TIME = np.polynomial.legendre.leggauss(6)
 
 
 # ----------------------------------------------------------------------------- motion -> blur
-def blur_pieces_px(lens: Lens, depth_mm: float, profile: Profile) -> list[tuple[float, float, float]]:
+def blur_pieces_px(
+    lens: Lens, depth_mm: float, profile: Profile
+) -> list[tuple[float, float, float]]:
     """Linear pieces ``(duration_s, b_start_px, b_end_px)`` of the blur diameter (Eq. 2).
 
     Segments of ``profile`` that cross the depth's focus ``v`` are split there,
@@ -180,9 +183,7 @@ def _pixel_integrate_radial(energy, half: int) -> np.ndarray:
     others = ~centre
     x, y = xs_f[others], ys_f[others]
     corner_angles = np.sort(
-        np.stack(
-            [np.arctan2(y + dy, x + dx) for dx in (-0.5, 0.5) for dy in (-0.5, 0.5)], axis=-1
-        ),
+        np.stack([np.arctan2(y + dy, x + dx) for dx in (-0.5, 0.5) for dy in (-0.5, 0.5)], axis=-1),
         axis=-1,
     )
     total = np.zeros(x.size)
@@ -292,7 +293,12 @@ def _resolve_size(size: int | None, max_blur_px: float, model: str, g: float) ->
                 f"(> {MAX_KERNEL_SIZE}); pass size= to truncate it"
             )
         return size
-    if isinstance(size, bool) or not isinstance(size, (int, np.integer)) or size < 1 or size % 2 == 0:
+    if (
+        isinstance(size, bool)
+        or not isinstance(size, (int, np.integer))
+        or size < 1
+        or size % 2 == 0
+    ):
         raise InputError(f"size must be a positive odd integer, got {size!r}")
     return int(size)
 
@@ -431,7 +437,7 @@ def _numeric_ipsf(pieces, half: int, model: str, g: float) -> np.ndarray:
     for duration, b0, b1 in pieces:
         n_sub = max(1, math.ceil(abs(b1 - b0) / 0.5))
         edges = np.linspace(0.0, 1.0, n_sub + 1)
-        for lo, hi in zip(edges[:-1], edges[1:]):
+        for lo, hi in itertools.pairwise(edges):
             for node, weight in zip(nodes, weights):
                 frac = lo + (hi - lo) * 0.5 * (node + 1)
                 b = b0 + (b1 - b0) * frac
@@ -475,7 +481,9 @@ def _centred_fft(kernel: np.ndarray, n: int) -> np.ndarray:
     return sfft.fft2(padded)
 
 
-def dissimilarity(k1: np.ndarray, k2: np.ndarray, *, eps: float = 1e-3, n: int | None = None) -> float:
+def dissimilarity(
+    k1: np.ndarray, k2: np.ndarray, *, eps: float = 1e-3, n: int | None = None
+) -> float:
     """Dissimilarity of two PSFs, Eq. 8 (Wiener reconstruction error weighted by |F|^2).
 
     ``d = sum_w (|K1-K2|^2/(|K1|^2+eps) + |K1-K2|^2/(|K2|^2+eps)) |F(w)|^2`` with
