@@ -47,7 +47,8 @@ class Profile:
             raise InputError(f"Profile times_s must be strictly increasing, got {times.tolist()}")
         if np.any(positions <= 0):
             raise InputError(
-                f"Profile image_distances_mm must be > 0 (mm from the lens), got {positions.tolist()}"
+                "Profile image_distances_mm must be > 0 (mm from the lens), "
+                f"got {positions.tolist()}"
             )
         times.setflags(write=False)
         positions.setflags(write=False)
