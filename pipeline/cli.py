@@ -37,6 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
     try:
         return int(args.func(args) or 0)
+    except BrokenPipeError:  # output piped into e.g. `head`
+        return 0
     except (FlexdofError, ValueError, OSError) as err:
         print(f"flexdof {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -1,0 +1,78 @@
+"""``flexdof optics``: sweep geometry for a lens and depth ranges (Fig. 2)."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from pipeline import optics
+from pipeline.commands import print_json
+from pipeline.profiles import load_lens
+
+FIG2_RANGES = ((1000.0, math.inf), (500.0, math.inf), (200.0, 500.0))
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "optics",
+        help="detector translation and image shift for sweeping a depth range (Fig. 2)",
+        description="Sweep geometry like the paper's Fig. 2. Without --near/--far, prints "
+        "Fig. 2's three depth ranges.",
+    )
+    parser.add_argument(
+        "--lens", default="fujinon-12.5mm-f1.4-sony-1-3in", help="profile name or path"
+    )
+    parser.add_argument("--near", type=float, help="near end of the depth range, mm")
+    parser.add_argument("--far", type=float, help="far end, mm (inf allowed)")
+    parser.add_argument("--coc-um", type=float, default=14.1, help="circle of confusion for DOF")
+    parser.add_argument("--json", action="store_true", help="machine-readable output")
+    parser.set_defaults(func=run)
+
+
+def sweep_geometry(lens, near_mm: float, far_mm: float, coc_um: float) -> dict:
+    """Fig. 2's columns plus the sweep's end positions and the normal camera's DOF."""
+    translation = optics.sweep_translation(lens.focal_length_mm, near_mm, far_mm)
+    start = optics.image_distance(lens.focal_length_mm, far_mm)
+    mid_focus = optics.focus_distance(lens.focal_length_mm, start + translation / 2)
+    dof = optics.depth_of_field(lens.focal_length_mm, lens.f_number, mid_focus, coc_um * 1e-3)
+    return {
+        "near_mm": near_mm,
+        "far_mm": far_mm,
+        "translation_um": translation * 1e3,
+        "start_image_distance_mm": start,
+        "end_image_distance_mm": start + translation,
+        "max_image_shift_px": optics.image_position_change_px(
+            lens.focal_length_mm,
+            near_mm,
+            far_mm,
+            pixel_pitch_um=lens.pixel_pitch_um,
+            width_px=lens.width_px,
+            height_px=lens.height_px,
+        ),
+        "min_sweep_time_s": translation / lens.max_speed_mm_s,
+        "normal_dof_at_mid_mm": list(dof),
+    }
+
+
+def run(args: argparse.Namespace) -> int:
+    lens = load_lens(args.lens)
+    if (args.near is None) != (args.far is None):
+        raise ValueError("give both --near and --far (mm), or neither for Fig. 2's ranges")
+    ranges = FIG2_RANGES if args.near is None else ((args.near, args.far),)
+    rows = [sweep_geometry(lens, near, far, args.coc_um) for near, far in ranges]
+    if args.json:
+        print_json({"lens": lens.name, "rows": rows})
+        return 0
+    print(f"{lens.name}: f = {lens.focal_length_mm} mm, f/{lens.f_number}")
+    print(
+        f"{'depth range':>20}  {'translation':>12}  {'image shift':>11}  "
+        f"{'sweep from -> to (mm)':>22}"
+    )
+    for row in rows:
+        span = f"{row['near_mm']:.0f} - {row['far_mm']:.0f} mm"
+        ends = f"{row['start_image_distance_mm']:.4f} -> {row['end_image_distance_mm']:.4f}"
+        print(
+            f"{span:>20}  {row['translation_um']:>9.1f} um  {row['max_image_shift_px']:>8.1f} px"
+            f"  {ends:>22}"
+        )
+    return 0
