@@ -505,3 +505,58 @@ def mtf(kernel: np.ndarray, *, n: int = 256) -> tuple[np.ndarray, np.ndarray]:
     spectrum = _centred_fft(kernel, max(n, kernel.shape[0]))
     m = spectrum.shape[1]
     return np.arange(m // 2 + 1) / m, np.abs(spectrum[0, : m // 2 + 1])
+
+
+# ----------------------------------------------------------------------------- focal stacks
+def focal_stack_psf(
+    frame_positions,
+    weights,
+    blur_px,
+    *,
+    model: str = "pillbox",
+    gaussian_g: float = 1.0,
+    focus_samples: int = 33,
+    size: int | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Depth-independent kernel of a weighted focal-stack average (Sec. 9).
+
+    A point focused at position ``x`` (in the frames' focus coordinate) is seen
+    by frame ``i`` with a blur of diameter ``blur_px(x_i, x)``; the weighted
+    average shows it blurred by ``K_x = sum_i w_i P(b(x_i, x))`` (the discrete
+    form of Eq. 5). ``K_x`` is averaged over ``focus_samples`` positions spread
+    uniformly over the stack's range (uniform in image distance, the coordinate
+    a constant-speed sweep is uniform in).
+
+    Parameters
+    ----------
+    frame_positions, weights : array_like, shape (n,)
+        Focus positions of the frames and their weights (sum 1).
+    blur_px : callable
+        ``blur_px(frame_positions, x) -> diameters`` (vectorised over frames).
+
+    Returns
+    -------
+    kernel : ndarray
+        The average kernel (odd, centred, sums to 1).
+    per_position : ndarray, shape (focus_samples, size, size)
+        ``K_x`` at each sampled position, to judge how depth-invariant it is.
+    """
+    x = np.asarray(frame_positions, dtype=np.float64)
+    w = np.asarray(weights, dtype=np.float64)
+    samples = np.linspace(x.min(), x.max(), focus_samples) if np.ptp(x) > 0 else x[:1]
+    blurs = np.array([np.asarray(blur_px(x, s), dtype=np.float64) for s in samples])
+    if not np.all(np.isfinite(blurs)) or np.any(blurs < 0):
+        raise InputError("blur_px returned negative or non-finite diameters")
+    half = _resolve_size(size, float(blurs.max()), model, gaussian_g) // 2
+    cache: dict[float, np.ndarray] = {}
+
+    def raster(b: float) -> np.ndarray:
+        key = round(b, 6)
+        if key not in cache:
+            cache[key] = _raster(model, b, half, gaussian_g)
+        return cache[key]
+
+    per_position = np.array(
+        [_normalise(sum(wi * raster(b) for wi, b in zip(w, row))) for row in blurs]
+    )
+    return _normalise(per_position.mean(axis=0)), per_position

@@ -1,0 +1,159 @@
+"""``flexdof tether``: list cameras, capture focal stacks and sweeps, calibrate focus steps."""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from pathlib import Path
+
+from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+def register(subparsers) -> None:
+    parser = subparsers.add_parser("tether", help="tethered capture over USB (PTP)")
+    sub = parser.add_subparsers(dest="tether_command", metavar="ACTION")
+    sub.required = True
+
+    def common(p):
+        p.add_argument("--emulate", choices=("canon", "nikon"),
+                       help="use the built-in emulated camera instead of USB")
+
+    p = sub.add_parser("list", help="list cameras and what they support")
+    common(p)
+    p.set_defaults(func=_list)
+
+    p = sub.add_parser("stack", help="capture a focal stack by driving the focus")
+    common(p)
+    p.add_argument("-o", "--output", required=True, type=Path, help="output directory")
+    p.add_argument("--frames", required=True, type=int)
+    p.add_argument("--step", required=True, type=int, help="drive steps between frames")
+    p.add_argument("--direction", choices=("near", "far"), default="far")
+    p.add_argument("--settle-ms", type=float, default=200.0, help="wait after each drive")
+    p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3),
+                   help="Canon DriveLens step size (1 fine .. 3 coarse)")
+    p.add_argument("--lens", help="lens profile name or path written to stack.toml")
+    p.set_defaults(func=_stack)
+
+    p = sub.add_parser("sweep", help="one bulb exposure while driving the focus (Sec. 8)")
+    common(p)
+    p.add_argument("-o", "--output", required=True, type=Path, help="output directory")
+    p.add_argument("--steps", required=True, type=int, help="total drive steps in the exposure")
+    p.add_argument("--exposure", required=True, type=float, help="exposure time, s")
+    p.add_argument("--direction", choices=("near", "far"), default="far")
+    p.add_argument("--period-ms", type=float, default=50.0, help="time between drive commands")
+    p.add_argument("--fallback-step", type=int, default=10,
+                   help="frame spacing of the dense stack used if the camera refuses")
+    p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3))
+    p.add_argument("--lens", help="lens profile name or path")
+    p.set_defaults(func=_sweep)
+
+    p = sub.add_parser("calibrate", help="measure step -> image distance from a captured stack")
+    p.add_argument("stack", type=Path, help="stack directory with stack.toml (focus_step)")
+    p.add_argument("--lens", required=True, help="lens profile to extend")
+    p.add_argument("-o", "--output", required=True, type=Path, help="profile TOML to write")
+    p.add_argument("--reference-focus-distance-mm", type=float, default=math.inf,
+                   help="focus distance of the first frame (default: infinity)")
+    p.set_defaults(func=_calibrate)
+
+
+def _backend(args, *, bulb: bool = False):
+    if not args.emulate:
+        return None
+    from pipeline.tether.emulator import emulated_backend
+
+    return emulated_backend(args.emulate, shutter="bulb" if bulb else "normal")
+
+
+def _lens_name(args) -> str:
+    from pipeline.profiles import resolve_lens_path
+    from pipeline.tether.flows import DEFAULT_LENS
+
+    name = args.lens or DEFAULT_LENS
+    resolve_lens_path(name)  # fail early on an unknown profile
+    return name
+
+
+def _list(args) -> int:
+    from pipeline.tether.camera import camera_for
+    from pipeline.tether.session import PtpSession, UnsupportedCamera
+    from pipeline.tether.transport import UsbTransport, find_cameras
+
+    cameras, seen = find_cameras(_backend(args))
+    print(f"USB devices: {len(seen)}; PTP cameras: {len(cameras)}")
+    for device in cameras:
+        session = PtpSession(UsbTransport(device))
+        try:
+            info = session.open()
+            try:
+                camera = camera_for(session)
+                camera.check_supported()
+                stack = "focal stack: yes"
+            except UnsupportedCamera as err:
+                stack = f"focal stack: no ({err})"
+            print(f"{device.idVendor:04x}:{device.idProduct:04x}  {info.manufacturer} "
+                  f"{info.model}  vendor={session.vendor}  {stack}")
+        finally:
+            session.close()
+    return 0
+
+
+def _stack(args) -> int:
+    from pipeline.tether.flows import StackPlan, capture_stack, connect
+
+    plan = StackPlan(args.frames, args.step, args.direction, args.settle_ms / 1e3)
+    lens = _lens_name(args)
+    with connect(_backend(args), drive_size=args.drive_size) as camera:
+        result = capture_stack(camera, args.output, plan, lens=lens)
+    print(f"{len(result.frames)} frames and stack.toml written to {args.output}")
+    return 0
+
+
+def _sweep(args) -> int:
+    from pipeline.motion import constant_speed
+    from pipeline.profiles import load_lens
+    from pipeline.tether.flows import capture_sweep, connect, drive_schedule
+
+    if args.steps < 1 or not (math.isfinite(args.exposure) and args.exposure > 0):
+        raise InputError(f"--steps must be >= 1 and --exposure > 0 s, got {args.steps}, "
+                         f"{args.exposure}")
+    if args.fallback_step < 1 or args.period_ms <= 0:
+        raise InputError("--fallback-step must be >= 1 and --period-ms > 0")
+    lens_name = _lens_name(args)
+    lens = load_lens(lens_name)
+    step_um = lens.step_image_distance_um
+    if step_um is None:
+        log.info("%s has no calibrated step size; planning in steps (1 um per step)", lens_name)
+        step_um = 1.0
+    sign = 1 if args.direction == "near" else -1  # near focus lengthens p
+    travel_mm = args.steps * step_um * 1e-3
+    profile = constant_speed(lens.focal_length_mm + travel_mm, sign * travel_mm / args.exposure,
+                             args.exposure)
+    schedule = drive_schedule(profile, step_um * 1e-3, period_s=args.period_ms / 1e3)
+    with connect(_backend(args, bulb=True), drive_size=args.drive_size, bulb=True) as camera:
+        result = capture_sweep(camera, args.output, schedule, args.exposure, lens=lens_name,
+                               fallback_step=args.fallback_step)
+    if result.fell_back:
+        print(result.message)
+    else:
+        print(f"sweep of {args.steps} steps in {args.exposure} s written to {args.output} "
+              f"({len(result.drive_log)} drive commands, times in drives.toml)")
+    return 0
+
+
+def _calibrate(args) -> int:
+    from pipeline.profiles import lens_to_toml, load_lens
+    from pipeline.tether.calibrate import calibrate_stack
+    from pipeline.tether.flows import write_atomic
+
+    lens = load_lens(args.lens)
+    cal = calibrate_stack(args.stack, lens.focal_length_mm,
+                          reference_focus_distance_mm=args.reference_focus_distance_mm)
+    calibrated = dataclasses.replace(lens, step_image_distance_um=cal.step_image_distance_um)
+    write_atomic(args.output, lens_to_toml(calibrated))
+    print(f"{cal.step_image_distance_um:.4g} um of image distance per step "
+          f"(rms residual {cal.rms_residual_um:.3g} um, {len(cal.steps)} frames); "
+          f"written to {args.output}")
+    return 0

@@ -1,0 +1,428 @@
+"""The main job as dask graphs: a focal stack or a sweep capture to an extended-DOF image.
+
+Data flow (DESIGN.md)::
+
+    frames -> Stack -> align (homography per frame) -> weights (Sec. 9)
+      -> streaming weighted sum (dask tree reduction) -> sweep image + its IPSF
+      -> deconvolve (tiled) -> output + JSON sidecar
+
+The weighted sum is a binary tree of merges over per-frame leaves (read, warp,
+weight), so at most a few frames are in memory at once whatever the stack's
+length. The same graph runs on the local threaded scheduler or on a
+``dask.distributed`` cluster (``scheduler="tcp://..."``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import cv2
+import dask
+import numpy as np
+
+from pipeline import align, defocus, optics, psf
+from pipeline.errors import InputError
+from pipeline.io import read_exif, read_frame, write_image, write_json
+from pipeline.motion import constant_speed
+from pipeline.profiles import Lens, load_lens
+from pipeline.stack import Stack, check_frames, image_distances_mm, load_stack, sweep_profile
+from pipeline.tiling import deconvolve_tiled
+from pipeline.weights import constant_speed_weights
+
+log = logging.getLogger(__name__)
+
+METHODS = ("wiener", "rl", "sparse")
+ALIGN_MODES = ("estimate", "analytic", "none")
+SATURATION = 0.999  # normalised level at and above which a pixel is treated as clipped
+PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
+
+
+@dataclasses.dataclass(frozen=True)
+class StackOptions:
+    """Options of the main job (the ``flexdof stack`` flags)."""
+
+    lens: str | None = None
+    method: str = "wiener"
+    align: str = "estimate"
+    encoding: str | None = None
+    blur_span_px: float | None = None
+    tile_px: int = 1024
+    align_max_side_px: int = 768
+    save_kernel: Path | None = None
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.align not in ALIGN_MODES:
+            raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
+        if self.blur_span_px is not None and not self.blur_span_px > 0:
+            raise InputError(f"blur_span_px must be > 0, got {self.blur_span_px!r}")
+
+
+@dataclasses.dataclass
+class StackResult:
+    output: Path
+    sidecar: dict
+    image: np.ndarray
+
+
+Progress = Callable[[str, int, int], None]
+
+
+def _no_progress(stage: str, done: int, total: int) -> None:
+    """Default progress sink: nothing."""
+
+
+# ----------------------------------------------------------------------------- frame leaves
+def _warped_leaf(path: str, homography, weight: float, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Read one frame, warp it onto the reference, weight it; also its clipped pixels."""
+    frame = read_frame(path)
+    if homography is not None:
+        frame = align.warp(frame, homography, shape)
+    clipped = np.any(frame >= SATURATION, axis=-1) if frame.ndim == 3 else frame >= SATURATION
+    frame *= np.float32(weight)
+    return frame, clipped
+
+
+def _merge(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]):
+    """Sum two partial weighted sums (in place) and OR their clipped masks."""
+    np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
+    np.logical_or(a[1], b[1], out=a[1])
+    return a
+
+
+def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
+    """A dask graph for ``sum_i w_i warp(frame_i)`` as a binary tree of merges.
+
+    Returns a Delayed yielding ``(sum, clipped_any_frame)``.
+    """
+    level = [
+        dask.delayed(_warped_leaf, pure=True)(str(path), h, float(w), tuple(shape))
+        for path, h, w in zip(files, homographies, weights)
+        if w > 0
+    ]
+    while len(level) > 1:
+        merged = [dask.delayed(_merge)(level[i], level[i + 1]) for i in range(0, len(level) - 1, 2)]
+        if len(level) % 2:
+            merged.append(level[-1])
+        level = merged
+    return level[0]
+
+
+# ----------------------------------------------------------------------------- scheduler
+@contextlib.contextmanager
+def scheduler_context(scheduler: str | None = None, threads: int | None = None):
+    """Local threads (default) or a dask.distributed cluster at ``scheduler`` (tcp://...)."""
+    if scheduler:
+        from distributed import Client
+
+        try:
+            client = Client(scheduler, timeout="10s", set_as_default=False)
+        except OSError as err:
+            raise InputError(f"--scheduler {scheduler}: cannot connect ({err})") from err
+        with client, dask.config.set(scheduler=client):
+            yield
+    else:
+        with dask.config.set(scheduler="threads", num_workers=threads):
+            yield
+
+
+# ----------------------------------------------------------------------------- positions
+def _resolve_lens(stack: Stack, options: StackOptions) -> Lens | None:
+    if options.lens is not None:
+        return load_lens(options.lens, base_dir=stack.base_dir)
+    return stack.lens_profile
+
+
+def _sidecar_positions(stack: Stack, lens: Lens | None) -> tuple[np.ndarray | None, bool]:
+    """(positions, absolute) from stack.toml/EXIF; uncalibrated focus steps stay in steps."""
+    kinds = {frame.position_kind for frame in stack.frames}
+    if kinds == {"focus_step"} and (lens is None or lens.step_image_distance_um is None):
+        return np.array([f.focus_step for f in stack.frames], dtype=np.float64), False
+    found = image_distances_mm(stack, lens)
+    if found is None:
+        return None, False
+    return found.image_distances_mm, not found.relative
+
+
+def positions_from_scales(scales: np.ndarray) -> tuple[np.ndarray, str]:
+    """Focus coordinate from measured magnifications (``scale = p_i / p_ref``).
+
+    Used when they rise or fall steadily and span more than 0.5%; otherwise the
+    frames are taken as evenly spaced in focus (their index), the usual capture.
+    """
+    s = np.asarray(scales, dtype=np.float64)
+    if s.size >= 3 and np.ptp(s) > 0.005:
+        steps = np.diff(s)
+        if (
+            np.all(steps > 0)
+            or np.all(steps < 0)
+            or abs(np.corrcoef(s, np.arange(s.size))[0, 1]) > 0.97
+        ):
+            return s, "magnification"
+    return np.arange(s.size, dtype=np.float64), "frame-order"
+
+
+# ----------------------------------------------------------------------------- kernels
+def stack_kernel(
+    positions: np.ndarray,
+    weights: np.ndarray,
+    *,
+    lens: Lens | None,
+    absolute: bool,
+    blur_span_px: float | None,
+) -> tuple[np.ndarray, dict]:
+    """The IPSF of the weighted average (Sec. 9) and a summary for the sidecar.
+
+    With a lens and absolute image distances, a point focused at ``v`` is blurred
+    in frame ``i`` by ``a |v - p_i| / v`` (Eq. 2); the stack-average kernel is
+    compared with the single analytic kernel of a constant-speed sweep over the
+    same range (Eq. 6, corrected) and the one closer (Eq. 8) to the per-depth
+    kernels is kept. Otherwise blur is ``D |x_i - x|`` with the blur span ``D``.
+    """
+    model = lens.psf_model if lens else "pillbox"
+    g = lens.gaussian_g if lens else 1.0
+    if lens is not None and absolute:
+        a_px = lens.aperture_mm / lens.pixel_pitch_mm
+
+        def blur(p, v):
+            return a_px * np.abs(v - p) / v  # Eq. 2
+
+        span = float(blur(positions.max(), positions.min()))
+    else:
+        if blur_span_px is None:
+            raise InputError("internal: no blur span for a stack without absolute positions")
+        width = max(np.ptp(positions), 1e-300)
+
+        def blur(p, x):
+            return blur_span_px * np.abs(p - x) / width
+
+        span = float(blur_span_px)
+    kernel, per_position = psf.focal_stack_psf(positions, weights, blur, model=model, gaussian_g=g)
+    summary = {"size": int(kernel.shape[0]), "source": "stack-average", "blur_span_px": span}
+    if lens is not None and absolute and np.ptp(positions) > 0:
+        p_lo, p_hi = float(positions.min()), float(positions.max())
+        middle = optics.focus_distance(lens.focal_length_mm, 0.5 * (p_lo + p_hi))
+        sweep = constant_speed(p_lo, p_hi - p_lo, 1.0)
+        analytic = psf.integrated_psf(lens, middle, sweep, size=kernel.shape[0])
+        d_avg = np.mean([psf.dissimilarity(k, kernel) for k in per_position])
+        d_eq6 = np.mean([psf.dissimilarity(k, analytic) for k in per_position])
+        summary["dissimilarity"] = {"stack-average": float(d_avg), "analytic-eq6": float(d_eq6)}
+        if d_eq6 < d_avg:
+            kernel, summary["source"] = analytic, "analytic-eq6"
+    spread = [psf.dissimilarity(k, kernel) for k in per_position]
+    summary["depth_invariance_eq8"] = {"mean": float(np.mean(spread)), "max": float(np.max(spread))}
+    return kernel, summary
+
+
+# ----------------------------------------------------------------------------- previews
+def _preview(frame: np.ndarray, side: int) -> np.ndarray:
+    grey = frame.mean(axis=-1) if frame.ndim == 3 else frame
+    scale = side / max(grey.shape)
+    size = (max(1, round(grey.shape[1] * scale)), max(1, round(grey.shape[0] * scale)))
+    return cv2.resize(grey.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+
+
+def _aligned_previews(stack: Stack, alignments, shape) -> tuple[list[np.ndarray], float]:
+    """Grey, aligned, reduced copies for the defocus fit, and their downscale factor."""
+    factor = max(shape[:2]) / PREVIEW_SIDE_PX
+    reduce = np.diag([1 / factor, 1 / factor, 1.0])
+    previews = []
+    for i, alignment in enumerate(alignments):
+        small = _preview(stack.read(i), PREVIEW_SIDE_PX)
+        h = reduce @ alignment.homography @ np.linalg.inv(reduce)
+        previews.append(align.warp(small, h, small.shape))
+    return previews, factor
+
+
+# ----------------------------------------------------------------------------- main job
+def process_stack(
+    paths: Sequence[str | Path] | str | Path,
+    output: str | Path,
+    options: StackOptions = StackOptions(),
+    *,
+    progress: Progress = _no_progress,
+) -> StackResult:
+    """Focal stack (or sweep capture) -> extended-DOF image at ``output`` + ``output.json``.
+
+    Runs on the current dask scheduler (see :func:`scheduler_context`). Nothing
+    is written unless the whole job succeeds; the image and its sidecar are each
+    written atomically.
+    """
+    output = Path(output)
+    _check_output(output)
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    stack = load_stack(paths)
+    lens = _resolve_lens(stack, options)
+    if stack.kind == "sweep":
+        return _process_sweep(stack, lens, output, options, start, progress)
+    info = check_frames(stack)
+    shape = info.shape
+    n = len(stack)
+    positions, absolute = _sidecar_positions(stack, lens)
+    progress("align", 0, n)
+
+    t0 = time.perf_counter()
+    alignments = _align(stack, options, positions, absolute, lens, shape, progress)
+    timings["align"] = time.perf_counter() - t0
+
+    positions_source = stack.positions_source or "stack.toml"
+    if positions is None:
+        positions, positions_source = positions_from_scales(np.array([a.scale for a in alignments]))
+        absolute = False
+    weights = constant_speed_weights(positions)
+
+    t0 = time.perf_counter()
+    blur_span = options.blur_span_px
+    if not (lens is not None and absolute) and blur_span is None:
+        if n < 2 or np.ptp(positions) == 0:
+            raise InputError(f"{stack.base_dir}: one focus position only: nothing to sweep")
+        previews, factor = _aligned_previews(stack, alignments, shape)
+        blur_span = defocus.estimate_blur_span(previews, positions, downscale=factor)
+        log.info("estimated blur span: %.1f px across the stack", blur_span)
+    kernel, kernel_summary = stack_kernel(
+        positions, weights, lens=lens, absolute=absolute, blur_span_px=blur_span
+    )
+    timings["kernel"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    graph = weighted_sum_graph(
+        stack.files,
+        [None if options.align == "none" else a.homography for a in alignments],
+        weights,
+        shape,
+    )
+    progress("accumulate", 0, 1)
+    ((average, clipped),) = dask.compute(graph)
+    progress("accumulate", 1, 1)
+    timings["accumulate"] = time.perf_counter() - t0
+
+    result, timings["deconvolve"] = _deconvolve(average, clipped, kernel, options, progress)
+    exif = read_exif(stack.files[0])
+    frames_meta = [
+        {
+            "file": str(frame.file.name),
+            "position": float(p),
+            "weight": float(w),
+            "scale": float(a.scale),
+            "homography": a.homography.tolist(),
+            "alignment": a.method if a.ok else f"fallback: {a.message}",
+        }
+        for frame, p, w, a in zip(stack.frames, positions, weights, alignments)
+    ]
+    if absolute:
+        for meta, p in zip(frames_meta, positions):
+            meta["image_distance_mm"] = float(p)
+    sidecar = {
+        "version": 1,
+        "inputs": [str(f) for f in stack.files],
+        "lens": (lens.source or lens.name) if lens else None,
+        "method": options.method,
+        "align": options.align,
+        "positions_source": positions_source,
+        "frames": frames_meta,
+        "kernel": kernel_summary,
+        "partial_stack": stack.partial,
+    }
+    return _finish(output, result, kernel, sidecar, timings, start, options, exif)
+
+
+def _check_output(output: Path) -> None:
+    if not output.parent.is_dir():
+        raise InputError(f"output {output}: the folder {output.parent} does not exist")
+    if output.suffix.lower() not in (".tif", ".tiff", ".png", ".jpg", ".jpeg"):
+        raise InputError(f"output {output}: use a .tif, .png or .jpg file name")
+
+
+def _align(stack, options, positions, absolute, lens, shape, progress):
+    n = len(stack)
+    if options.align == "none":
+        return align.analytic_alignment(np.ones(n), shape)  # identities
+    if options.align == "analytic":
+        if positions is None or not absolute:
+            raise InputError(
+                f"{stack.base_dir}: --align analytic needs absolute focus positions "
+                "(image or focus distances in stack.toml); use --align estimate"
+            )
+        return align.analytic_alignment(positions, shape)
+    done = [0]
+
+    def loader(i):
+        def load():
+            frame = stack.read(i)
+            done[0] += 1
+            progress("align", done[0], n)
+            return frame
+
+        return load
+
+    alignments = align.estimate_alignment(
+        [loader(i) for i in range(n)], max_side_px=options.align_max_side_px
+    )
+    for i, a in enumerate(alignments):
+        if not a.ok:
+            log.warning("frame %s: alignment fell back (%s)", stack.files[i].name, a.message)
+    return alignments
+
+
+def _deconvolve(image, clipped, kernel, options, progress):
+    t0 = time.perf_counter()
+    progress("deconvolve", 0, 1)
+    censored = image.copy()
+    censored[clipped] = np.maximum(censored[clipped], 1.0)  # clipped in any frame: no data there
+    result = deconvolve_tiled(
+        censored, kernel, method=options.method, tile_px=options.tile_px, saturation=1.0
+    )
+    progress("deconvolve", 1, 1)
+    return result, time.perf_counter() - t0
+
+
+def _finish(output, result, kernel, sidecar, timings, start, options, exif) -> StackResult:
+    if not np.all(np.isfinite(result)):
+        raise InputError("deconvolution produced non-finite values; try --method rl")
+    t0 = time.perf_counter()
+    write_image(output, result, encoding=options.encoding, exif=exif)
+    if options.save_kernel is not None:
+        write_image(options.save_kernel, kernel.astype(np.float32), encoding="float32")
+        sidecar["kernel"]["file"] = str(options.save_kernel)
+    timings["write"] = time.perf_counter() - t0
+    timings["total"] = time.perf_counter() - start
+    sidecar["timings_s"] = timings
+    write_json(output.with_name(output.name + ".json"), sidecar)
+    return StackResult(output, sidecar, result)
+
+
+def _process_sweep(stack, lens, output, options, start, progress) -> StackResult:
+    """A single focus-sweep capture (Sec. 4, 8): deconvolve with the IPSF of its motion."""
+    if lens is None:
+        raise InputError(f"{stack.base_dir}: a sweep capture needs a lens (stack.toml or --lens)")
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    image = read_frame(stack.sweep.file)
+    timings["read"] = time.perf_counter() - t0
+    profile = sweep_profile(stack, lens)
+    p_lo, p_hi = profile.range_mm
+    middle = optics.focus_distance(lens.focal_length_mm, 0.5 * (p_lo + p_hi))
+    kernel = psf.integrated_psf(lens, middle, profile)
+    clipped = np.any(image >= SATURATION, axis=-1) if image.ndim == 3 else image >= SATURATION
+    result, timings["deconvolve"] = _deconvolve(image, clipped, kernel, options, progress)
+    sidecar = {
+        "version": 1,
+        "inputs": [str(stack.sweep.file)],
+        "lens": lens.source or lens.name,
+        "method": options.method,
+        "sweep": {"image_distance_mm": [p_lo, p_hi], "exposure_s": profile.exposure_s},
+        "kernel": {"size": int(kernel.shape[0]), "source": "analytic-eq6", "depth_mm": middle},
+    }
+    if not math.isfinite(middle):
+        sidecar["kernel"]["depth_mm"] = "inf"
+    return _finish(
+        output, result, kernel, sidecar, timings, start, options, read_exif(stack.sweep.file)
+    )

@@ -1,0 +1,451 @@
+"""Tests of pipeline.align: homography helpers, warping, estimation (synthetic and real stacks)."""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy import ndimage
+
+from pipeline.align import (
+    Alignment,
+    analytic_alignment,
+    compose,
+    estimate_alignment,
+    map_points,
+    scale_of,
+    warp,
+)
+from pipeline.errors import InputError
+
+PCB10 = ("focusstack-pcb", "pcb10", "*.JPG")
+PCB7 = ("focusstack-pcb", "pcb7", "pcb_*.jpg")
+BEETLE = ("chimpstackr-beetle", ".", "*.jpg")
+
+
+# --- helpers ------------------------------------------------------------------------------------
+
+
+def similarity(scale: float, angle_deg: float, shift_xy: tuple[float, float], centre) -> np.ndarray:
+    """Rotation + scaling about ``centre`` followed by a shift (independent of the module)."""
+    a = math.radians(angle_deg)
+    c, s = scale * math.cos(a), scale * math.sin(a)
+    cx, cy = centre
+    return np.array(
+        [
+            [c, -s, cx - c * cx + s * cy + shift_xy[0]],
+            [s, c, cy - s * cx - c * cy + shift_xy[1]],
+            [0.0, 0.0, 1.0],
+        ]
+    )
+
+
+def apply_h(h: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    q = np.c_[xy, np.ones(len(xy))] @ h.T
+    return q[:, :2] / q[:, 2:]
+
+
+def corners(shape) -> np.ndarray:
+    rows, cols = shape[:2]
+    return np.array([[0, 0], [cols - 1, 0], [0, rows - 1], [cols - 1, rows - 1]], float)
+
+
+def corner_error(h_est: np.ndarray, h_true: np.ndarray, shape) -> float:
+    c = corners(shape)
+    return float(np.max(np.linalg.norm(apply_h(h_est, c) - apply_h(h_true, c), axis=1)))
+
+
+@pytest.fixture(scope="module")
+def scene() -> np.ndarray:
+    """A 1536x2048 linear grey scene: astronaut upsampled and tiled with its mirrors."""
+    from skimage import data
+
+    g = cv2.cvtColor(data.astronaut(), cv2.COLOR_RGB2GRAY).astype(np.float32) / 255
+    big = cv2.resize(g, (1024, 1024), interpolation=cv2.INTER_CUBIC)
+    row = np.hstack([big, big[:, ::-1]])
+    tiled = np.vstack([row, row[::-1]])[:1536]
+    return np.clip(tiled, 0, 1) ** 2.2
+
+
+def render(scene: np.ndarray, h_true: np.ndarray, shape, offset, sigma: float = 0.0) -> np.ndarray:
+    """Frame whose pixel x shows scene point ``offset + H_true x`` (scipy, cubic), then blurred.
+
+    The blur is applied on a margin that is cropped away, so the frame's border
+    shows scene content blurred in, as a defocused camera frame does.
+    """
+    rows, cols = shape
+    pad = math.ceil(4 * sigma)
+    yy, xx = np.mgrid[-pad : rows + pad, -pad : cols + pad].astype(np.float64)
+    q = np.stack([xx, yy, np.ones_like(xx)], axis=-1) @ h_true.T
+    sx = q[..., 0] / q[..., 2] + offset[0]
+    sy = q[..., 1] / q[..., 2] + offset[1]
+    out = ndimage.map_coordinates(scene.astype(np.float64), [sy, sx], order=3, mode="reflect")
+    if sigma > 0:
+        out = ndimage.gaussian_filter(out, sigma)[pad : pad + rows, pad : pad + cols]
+    return np.maximum(out, 0).astype(np.float32)
+
+
+def read_stack(shared_data: Path, where: tuple[str, str, str]):
+    """Lazy loaders of 8-bit grey JPEG frames, approximately linearised (sRGB ~ gamma 2.2)."""
+    files = sorted((shared_data / where[0] / where[1]).glob(where[2]))
+    assert files, f"no frames for {where}"
+
+    def loader(path):
+        return lambda: (cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255) ** 2.2
+
+    return [loader(f) for f in files]
+
+
+# --- helpers: scale_of, compose, map_points -----------------------------------------------------
+
+
+homography_entries = st.tuples(
+    st.floats(0.7, 1.4),
+    st.floats(-0.2, 0.2),
+    st.floats(-50, 50),
+    st.floats(-0.2, 0.2),
+    st.floats(0.7, 1.4),
+    st.floats(-50, 50),
+    st.floats(-1e-4, 1e-4),
+    st.floats(-1e-4, 1e-4),
+)
+
+
+@given(
+    homography_entries,
+    st.lists(st.tuples(st.floats(0, 1000), st.floats(0, 800)), min_size=1, max_size=20),
+)
+@settings(max_examples=60, deadline=None)
+def test_homography_round_trip(entries, points):
+    a, b, c, d, e, f, g, h = entries
+    m = np.array([[a, b, c], [d, e, f], [g, h, 1.0]])
+    pts = np.array(points)
+    back = map_points(np.linalg.inv(m), map_points(m, pts))
+    np.testing.assert_allclose(back, pts, atol=1e-6)
+    np.testing.assert_allclose(compose(np.linalg.inv(m), m), np.eye(3), atol=1e-9)
+    np.testing.assert_allclose(map_points(m, pts), apply_h(m, pts), rtol=1e-12, atol=1e-9)
+
+
+def test_compose_applies_rightmost_first():
+    shift = np.array([[1, 0, 10.0], [0, 1, 0], [0, 0, 1]])
+    double = np.diag([2.0, 2.0, 1.0])
+    # double first, then shift: (1, 1) -> (2, 2) -> (12, 2)
+    np.testing.assert_allclose(map_points(compose(shift, double), np.array([1.0, 1.0])), [12, 2])
+    np.testing.assert_allclose(compose(3 * shift), shift)  # normalised to h[2, 2] = 1
+
+
+@pytest.mark.parametrize("s", [0.5, 0.93, 1.0, 1.08, 2.0])
+def test_scale_of_similarity(s):
+    assert scale_of(similarity(s, 17.0, (3.0, -4.0), (100.0, 50.0))) == pytest.approx(s, rel=1e-12)
+    assert scale_of(7 * similarity(s, 0.0, (0.0, 0.0), (0.0, 0.0))) == pytest.approx(s, rel=1e-12)
+
+
+@pytest.mark.parametrize(
+    "bad", [np.zeros((3, 3)), np.eye(2), np.full((3, 3), np.nan), np.diag([1.0, 1.0, 0.0])]
+)
+def test_invalid_homography(bad):
+    with pytest.raises(InputError, match="homography"):
+        scale_of(bad)
+
+
+# --- warp ---------------------------------------------------------------------------------------
+
+
+@given(
+    st.integers(1, 40),
+    st.integers(1, 40),
+    st.sampled_from([0, 1, 3, 4, 6]),
+    st.sampled_from([np.float32, np.float64]),
+)
+@settings(max_examples=40, deadline=None)
+def test_warp_identity_returns_input(rows, cols, channels, dtype):
+    shape = (rows, cols) if channels == 0 else (rows, cols, channels)
+    x = np.random.default_rng(rows * 41 + cols).normal(size=shape).astype(dtype)
+    out = warp(x, np.eye(3), x.shape)
+    assert out.dtype == (np.float32 if dtype == np.float32 else np.float64)
+    assert out.shape == x.shape
+    if dtype == np.float32:
+        np.testing.assert_array_equal(out, x)
+    else:  # resampled in float32 (see warp's Notes)
+        np.testing.assert_allclose(out, x, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("channels", [0, 3, 5])
+def test_warp_matches_bilinear_reference(channels):
+    rng = np.random.default_rng(1)
+    shape = (60, 80) if channels == 0 else (60, 80, channels)
+    x = rng.random(shape, dtype=np.float32)
+    h = np.array([[1.03, 0.01, -2.3], [-0.02, 0.98, 1.7], [1e-4, -2e-4, 1.0]])
+    out, cov = warp(x, h, (50, 70), return_coverage=True)
+    # independent: out(y) = x(H^-1 y), bilinear, by scipy
+    yy, xx = np.mgrid[0:50, 0:70].astype(float)
+    src = apply_h(np.linalg.inv(h), np.c_[xx.ravel(), yy.ravel()])
+    coords = [src[:, 1], src[:, 0]]
+    planes = [x] if channels == 0 else [x[..., k] for k in range(channels)]
+    ref = np.stack(
+        [ndimage.map_coordinates(p.astype(float), coords, order=1, mode="nearest") for p in planes],
+        axis=-1,
+    ).reshape(out.shape)
+    np.testing.assert_allclose(out, ref, atol=2e-5)
+    inside = (src[:, 0] >= 0) & (src[:, 0] <= 79) & (src[:, 1] >= 0) & (src[:, 1] <= 59)
+    far_out = (src[:, 0] < -1) | (src[:, 0] > 80) | (src[:, 1] < -1) | (src[:, 1] > 60)
+    assert cov.dtype == np.float32 and cov.shape == (50, 70)
+    np.testing.assert_array_equal(cov.ravel()[inside], 1.0)
+    np.testing.assert_array_equal(cov.ravel()[far_out], 0.0)
+    assert far_out.any() and inside.any()
+
+
+def test_warp_integer_shift_and_replicated_border():
+    x = np.arange(20 * 30, dtype=np.float32).reshape(20, 30)
+    h = np.array([[1, 0, 5.0], [0, 1, -3.0], [0, 0, 1]])  # frame (x, y) -> reference (x+5, y-3)
+    out = warp(x, h, x.shape)
+    np.testing.assert_array_equal(out[:17, 5:], x[3:, :25])
+    np.testing.assert_array_equal(out[:17, :5], np.repeat(x[3:, :1], 5, axis=1))  # replicated
+    assert np.all(np.isfinite(out))
+
+
+def test_warp_validates():
+    with pytest.raises(InputError, match="frame"):
+        warp(np.zeros((2, 3, 4, 5), np.float32), np.eye(3), (2, 3))
+    with pytest.raises(InputError, match="shape"):
+        warp(np.zeros((4, 4), np.float32), np.eye(3), (0, 4))
+    with pytest.raises(InputError, match="singular"):
+        warp(np.zeros((4, 4), np.float32), np.diag([1.0, 0.0, 1.0]), (4, 4))
+
+
+# --- analytic alignment -------------------------------------------------------------------------
+
+
+def test_analytic_alignment_scales_about_centre():
+    p = [12.5, 12.6, 12.7, 12.9]
+    al = analytic_alignment(p, (768, 1024), reference=1)
+    c = np.array([511.5, 383.5])
+    for p_i, a in zip(p, al):
+        np.testing.assert_allclose(map_points(a.homography, c), c, atol=1e-9)
+        # a point at radius r in frame i sits at r * p_ref / p_i in the reference (Fig. 1)
+        np.testing.assert_allclose(
+            map_points(a.homography, c + np.array([300.0, -200.0])) - c,
+            np.array([300.0, -200.0]) * 12.6 / p_i,
+            rtol=1e-12,
+        )
+        assert a.scale == pytest.approx(p_i / 12.6, rel=1e-12)
+        assert a.ok
+    assert al[1].method == "reference"
+    off = analytic_alignment(p, (768, 1024), centre=(100.0, 50.0))
+    np.testing.assert_allclose(map_points(off[0].homography, [100.0, 50.0]), [100, 50], atol=1e-9)
+
+
+@pytest.mark.parametrize("bad", [[], [12.5, 0.0], [12.5, math.inf], [12.5, -1.0]])
+def test_analytic_alignment_validates(bad):
+    with pytest.raises(InputError, match="image_distances_mm"):
+        analytic_alignment(bad, (10, 10))
+
+
+# --- estimation: synthetic ground truth ----------------------------------------------------------
+
+FRAME = (768, 1024)
+OFFSET = (512.0, 384.0)  # frames look at the middle of the 1536x2048 scene
+CENTRE = ((FRAME[1] - 1) / 2, (FRAME[0] - 1) / 2)
+
+
+@pytest.mark.parametrize("model", ["homography", "similarity"])
+def test_estimate_synthetic_stack(scene, model):
+    """Scales 0.92-1.08, small shifts/rotations, defocus-like blur up to sigma 4 px."""
+    params = [  # (scale of H, angle deg, shift px, blur sigma px)
+        (1.08, 0.4, (3.0, -2.0), 4.0),
+        (1.04, -0.3, (-1.5, 2.5), 2.0),
+        (1.0, 0.0, (0.0, 0.0), 0.0),
+        (0.96, 0.2, (2.0, 1.0), 1.0),
+        (0.92, -0.5, (-3.0, -1.0), 3.0),
+    ]
+    truths = [similarity(s, a, d, CENTRE) for s, a, d, _ in params]
+    if model == "homography":
+        tilt = np.array([[1, 0, 0], [0, 1, 0], [1.5e-5, -1e-5, 1.0]])
+        truths[1] = truths[1] @ tilt
+        truths[4] = truths[4] @ np.linalg.inv(tilt)
+    frames = [render(scene, h, FRAME, OFFSET, p[3]) for h, p in zip(truths, params)]
+    al = estimate_alignment(frames, model=model, max_side_px=768)
+    assert all(a.ok for a in al), [a.message for a in al]
+    for a, h, (s, *_rest) in zip(al, truths, params):
+        assert corner_error(a.homography, h, FRAME) < 0.5
+        assert a.scale == pytest.approx(1 / s, rel=2e-3)
+        assert a.homography.dtype == np.float64 and a.homography[2, 2] == 1.0
+
+
+def test_estimate_direct_and_features_methods(scene):
+    truths = [similarity(0.97, 0.3, (2.0, -1.0), CENTRE), np.eye(3)]
+    frames = [render(scene, h, FRAME, OFFSET, 1.5) for h in truths]
+    for method, chain in [("ecc", False), ("features", True)]:
+        al = estimate_alignment(frames, reference=1, method=method, chain=chain, model="affine")
+        assert al[0].ok and al[0].method.startswith(method.replace("ecc", "ecc"))
+        assert corner_error(al[0].homography, truths[0], FRAME) < 0.5
+
+
+def test_estimate_colour_frames_and_reduction(scene):
+    """Colour input, estimated at a quarter of the resolution: the conjugated H is still exact."""
+    truth = similarity(1.05, -0.4, (4.0, 3.0), CENTRE)
+    grey = [render(scene, np.eye(3), FRAME, OFFSET), render(scene, truth, FRAME, OFFSET, 2.0)]
+    tint = np.array([0.8, 1.0, 0.6], np.float32)
+    frames = [g[..., None] * tint for g in grey]
+    al = estimate_alignment(frames, reference=0, max_side_px=256)
+    assert al[1].ok, al[1].message
+    assert corner_error(al[1].homography, truth, FRAME) < 0.5
+
+
+def test_analytic_and_estimated_agree(scene):
+    p = [12.40, 12.55, 12.70]
+    truth = analytic_alignment(p, FRAME)
+    frames = [render(scene, a.homography, FRAME, OFFSET, 1.0) for a in truth]
+    al = estimate_alignment(frames, model="similarity")
+    for a, t in zip(al, truth):
+        assert a.ok and corner_error(a.homography, t.homography, FRAME) < 0.5
+        assert a.scale == pytest.approx(t.scale, rel=1e-3)
+
+
+def test_lazy_frames_are_loaded_once(scene):
+    base = render(scene, np.eye(3), (300, 400), OFFSET)
+    calls = []
+
+    def loader(k):
+        def load():
+            calls.append(k)
+            return np.roll(base, k, axis=1)
+
+        return load
+
+    al = estimate_alignment([loader(k) for k in range(3)], max_side_px=400)
+    assert sorted(calls) == [0, 1, 2]
+    # np.roll by k columns: frame x maps to reference x - (k - 1)
+    for k, a in enumerate(al):
+        assert a.ok
+        np.testing.assert_allclose(
+            map_points(a.homography, [200.0, 150.0]), [201.0 - k, 150.0], atol=0.05
+        )
+
+
+# --- estimation: hard cases ---------------------------------------------------------------------
+
+
+def test_textureless_frame_falls_back(scene, caplog):
+    good = [render(scene, similarity(s, 0, (0, 0), CENTRE), FRAME, OFFSET) for s in (1.02, 1.0)]
+    flat = np.full(FRAME, 0.25, np.float32)
+    far = render(scene, similarity(0.96, 0, (0, 0), CENTRE), FRAME, OFFSET)
+    with caplog.at_level(logging.WARNING, logger="pipeline.align"):
+        al = estimate_alignment([good[0], good[1], flat, far], reference=1)
+    assert not al[2].ok and "texture" in al[2].message
+    np.testing.assert_array_equal(al[2].homography, al[1].homography)  # the anchor's
+    assert any("frame 2" in r.getMessage() for r in caplog.records)
+    # frame 3 skipped the failed frame and matched the reference directly
+    assert al[3].ok and al[0].ok
+    assert al[3].scale == pytest.approx(1 / 0.96, rel=2e-3)
+    for a in al:
+        assert np.all(np.isfinite(a.homography)) and math.isfinite(a.scale)
+
+
+def test_textureless_uses_given_fallback():
+    flat = [np.zeros((200, 300), np.float32), np.full((200, 300), 3.0, np.float32)]
+    fb = analytic_alignment([12.5, 12.6], (200, 300), reference=1)
+    al = estimate_alignment(flat, reference=1, fallback=fb)
+    assert al[1].ok and al[1].method == "reference"
+    assert not al[0].ok and al[0].method == "fallback"
+    np.testing.assert_array_equal(al[0].homography, fb[0].homography)
+    assert al[0].scale == pytest.approx(12.5 / 12.6)
+
+
+def test_noise_frames_do_not_align():
+    rng = np.random.default_rng(5)
+    frames = [rng.random((240, 320), dtype=np.float32) for _ in range(2)]
+    al = estimate_alignment(frames)
+    assert not al[0].ok and np.all(np.isfinite(al[0].homography))
+
+
+def test_single_and_identical_frames(scene):
+    frame = render(scene, np.eye(3), FRAME, OFFSET)
+    (only,) = estimate_alignment([frame])
+    assert only.ok and only.method == "reference" and only.scale == 1.0
+    np.testing.assert_array_equal(only.homography, np.eye(3))
+    al = estimate_alignment([frame, frame.copy()])
+    assert al[0].ok
+    assert corner_error(al[0].homography, np.eye(3), FRAME) < 0.05
+
+
+def test_estimate_validates():
+    a = np.zeros((100, 200), np.float32)
+    with pytest.raises(InputError, match=r"frames\[2\]"):
+        estimate_alignment([a, a, np.zeros((100, 201), np.float32)])
+    with pytest.raises(InputError, match=r"frames\[1\].*NaN"):
+        estimate_alignment([a, np.full_like(a, np.nan)])
+    with pytest.raises(InputError, match="frames is empty"):
+        estimate_alignment([])
+    with pytest.raises(InputError, match="model"):
+        estimate_alignment([a], model="projective")
+    with pytest.raises(InputError, match="reference"):
+        estimate_alignment([a, a], reference=2)
+    with pytest.raises(InputError, match=r"frames\[0\]"):
+        estimate_alignment([np.zeros((4, 4, 4, 4))])
+
+
+# --- real focal stacks --------------------------------------------------------------------------
+
+
+def neighbour_mad(frames: list[np.ndarray]) -> float:
+    """Mean |difference| of neighbouring frames on the central half, gamma-encoded."""
+    rows, cols = frames[0].shape[:2]
+    crop = (slice(rows // 4, 3 * rows // 4), slice(cols // 4, 3 * cols // 4))
+    enc = [f[crop] ** (1 / 2.2) for f in frames]
+    return float(np.mean([np.abs(a - b).mean() for a, b in itertools.pairwise(enc)]))
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize(
+    ("where", "lo", "hi", "mad_ratio"),
+    [(PCB10, (0.92, 0.94), (1.07, 1.09), 0.7), (PCB7, (0.975, 0.99), (1.015, 1.03), 0.8)],
+)
+def test_real_pcb_stacks(shared_data, where, lo, hi, mad_ratio):
+    loaders = read_stack(shared_data, where)
+    al = estimate_alignment(loaders)
+    scales = np.array([a.scale for a in al])
+    assert all(a.ok for a in al), [a.message for a in al]
+    assert lo[0] < scales.min() < lo[1] and hi[0] < scales.max() < hi[1], scales
+    d = np.diff(scales)
+    assert np.all(d > 0) or np.all(d < 0), scales  # monotone in frame order
+    frames = [load() for load in loaders]
+    warped = [warp(f, a.homography, f.shape) for f, a in zip(frames, al)]
+    assert neighbour_mad(warped) < mad_ratio * neighbour_mad(frames)
+
+
+@pytest.mark.shared_data
+def test_real_beetle_stack(shared_data):
+    al = estimate_alignment(read_stack(shared_data, BEETLE))
+    scales = np.array([a.scale for a in al])
+    assert all(a.ok for a in al), [a.message for a in al]
+    assert 0.985 < scales.min() < 0.997 and 1.005 < scales.max() < 1.012, scales
+    assert np.all(np.diff(scales) > 0), scales
+
+
+def test_alignment_is_a_plain_record():
+    a = Alignment(np.eye(3), 1.0, "reference")
+    assert a.ok and a.message == "" and a.correlation is None
+
+
+@pytest.mark.parametrize("small", [(150, 200), (173, 231)])
+def test_reduction_geometry_matches_cv2_resize(small):
+    """The full-res <-> matching-copy map follows cv2.resize's pixel-centre convention."""
+    from pipeline.align import _scaling
+
+    x0, y0 = 313.3, 207.6
+    yy, xx = np.mgrid[0:600, 0:800].astype(np.float64)
+    blob = np.exp(-((xx - x0) ** 2 + (yy - y0) ** 2) / (2 * 8.0**2)).astype(np.float32)
+    r = cv2.resize(blob, small[::-1], interpolation=cv2.INTER_AREA).astype(np.float64)
+    ry, rx = np.mgrid[0 : small[0], 0 : small[1]]
+    centroid = [(r * rx).sum() / r.sum(), (r * ry).sum() / r.sum()]
+    np.testing.assert_allclose(
+        apply_h(_scaling((600, 800), small), [[x0, y0]])[0], centroid, atol=0.01
+    )

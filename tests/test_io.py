@@ -1,0 +1,399 @@
+"""pipeline.io: decoding to float32 linear light, encoding, atomic writes, bad files."""
+
+from __future__ import annotations
+
+import math
+import os
+
+import cv2
+import numpy as np
+import pytest
+import rawpy
+import tifffile
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from PIL import Image
+from PIL.TiffImagePlugin import IFDRational
+
+from pipeline.errors import InputError
+from pipeline.io import (
+    frame_info,
+    linear_to_srgb,
+    read_exif,
+    read_frame,
+    srgb_to_linear,
+    subject_distance_mm,
+    write_image,
+    write_json,
+)
+
+
+def eotf(codes, top):
+    """The sRGB EOTF (IEC 61966-2-1) written out independently, float64."""
+    c = np.asarray(codes, dtype=np.float64) / top
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def ramp(shape, rng):
+    """A smooth linear-light test image in [0, 1] with a few exact 0s and 1s."""
+    image = rng.random(shape).astype(np.float32)
+    image.flat[0], image.flat[-1] = 0.0, 1.0
+    return image
+
+
+# --- sRGB transfer functions -----------------------------------------------------------------
+
+
+def test_srgb_known_values():
+    # Reference values of the sRGB standard's formulas (also in e.g. colour-science).
+    assert srgb_to_linear(np.float64(0.5)) == pytest.approx(0.21404114048223255, rel=1e-12)
+    assert linear_to_srgb(np.float64(0.18)) == pytest.approx(0.4613561295004128, rel=1e-12)
+    assert srgb_to_linear(np.float64(0.04045)) == pytest.approx(0.04045 / 12.92)
+    assert linear_to_srgb(np.float64(1.0)) == pytest.approx(1.0, abs=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("dtype", "out"), [(np.float32, np.float32), (np.float64, np.float64), (np.uint8, np.float64)]
+)
+def test_srgb_dtype_policy(dtype, out):
+    x = np.array([0, 1], dtype=dtype)
+    assert srgb_to_linear(x).dtype == out
+    assert linear_to_srgb(x).dtype == out
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.floats(0.0, 1.0))
+def test_srgb_round_trip(value):
+    x = np.float64(value)
+    # The standard's thresholds (0.04045 and 0.0031308 = 0.04045 / 12.92 - 5e-9) do not
+    # match exactly, so the round trip near the knee is exact only to ~1e-7.
+    assert srgb_to_linear(linear_to_srgb(x)) == pytest.approx(x, abs=1e-7)
+    assert linear_to_srgb(srgb_to_linear(x)) == pytest.approx(x, abs=1e-7)
+
+
+def test_srgb_float32_accuracy():
+    x = np.linspace(0, 1, 100001, dtype=np.float32)
+    back = srgb_to_linear(linear_to_srgb(x))
+    assert back.dtype == np.float32
+    assert np.max(np.abs(back - x)) < 2e-6
+
+
+# --- decoding of integer and float files written by other libraries -----------------------
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize(("ext", "dtype"), [(".png", np.uint8), (".png", np.uint16)])
+def test_png_decodes_with_srgb_eotf(tmp_path, ext, dtype, channels):
+    top = np.iinfo(dtype).max
+    rng = np.random.default_rng(1)
+    shape = (17, 23) if channels == 1 else (17, 23, 3)
+    codes = rng.integers(0, top + 1, shape, dtype=dtype)
+    path = tmp_path / f"img{ext}"
+    assert cv2.imwrite(str(path), codes if channels == 1 else codes[:, :, ::-1])  # RGB -> BGR
+    image = read_frame(path)
+    assert image.dtype == np.float32 and image.shape == shape
+    np.testing.assert_allclose(image, eotf(codes, top), rtol=1e-6, atol=1e-9)
+    assert frame_info(path).shape == shape
+
+
+@pytest.mark.parametrize("planar", [False, True])
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.float32])
+def test_tiff_decoding(tmp_path, dtype, planar):
+    rng = np.random.default_rng(2)
+    if np.dtype(dtype).kind == "f":
+        data = rng.random((9, 11, 3)).astype(dtype) * 1.5 - 0.2  # float TIFF is linear, unclipped
+        expected = data.astype(np.float64)
+    else:
+        top = np.iinfo(dtype).max
+        data = rng.integers(0, top + 1, (9, 11, 3), dtype=dtype)
+        expected = eotf(data, top)
+    stored = np.moveaxis(data, -1, 0) if planar else data
+    path = tmp_path / "img.tif"
+    tifffile.imwrite(path, stored, photometric="rgb", planarconfig="separate" if planar else None)
+    image = read_frame(path)
+    assert image.shape == (9, 11, 3) and image.dtype == np.float32
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-9)
+    assert frame_info(path).shape == (9, 11, 3)
+
+
+def test_tiff_transfer_override(tmp_path):
+    codes = np.arange(0, 65536, 257, dtype=np.uint16).reshape(16, 16)
+    tifffile.imwrite(tmp_path / "lin.tif", codes)
+    np.testing.assert_allclose(read_frame(tmp_path / "lin.tif", transfer="linear"), codes / 65535)
+    with pytest.raises(InputError, match="transfer"):
+        read_frame(tmp_path / "lin.tif", transfer="gamma")
+
+
+# --- writing ---------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("shape", [(13, 19), (13, 19, 3)])
+@pytest.mark.parametrize(
+    ("name", "encoding", "bits"),
+    [("a.png", None, 8), ("a.png", "srgb16", 16), ("a.tif", None, 16), ("a.tif", "srgb8", 8)],
+)
+def test_srgb_integer_round_trip(tmp_path, shape, name, encoding, bits):
+    image = ramp(shape, np.random.default_rng(3))
+    path = tmp_path / name
+    write_image(path, image, encoding=encoding)
+    back = read_frame(path)
+    assert back.shape == shape and back.dtype == np.float32
+    # Quantisation happens in the encoded domain: within half a code step there.
+    step = 1 / (2**bits - 1)
+    encoded = 1.055 * np.maximum(image.astype(np.float64), 0.0031308) ** (1 / 2.4) - 0.055
+    encoded = np.where(image <= 0.0031308, 12.92 * image, encoded)
+    assert np.max(np.abs(linear_to_srgb(back.astype(np.float64)) - encoded)) <= step / 2 + 1e-6
+
+
+def test_written_png_codes_are_srgb(tmp_path):
+    """An independent reader (OpenCV) sees round(255 * sRGB(x)) codes."""
+    image = np.linspace(0, 1, 64, dtype=np.float32).reshape(8, 8)
+    write_image(tmp_path / "g.png", image)
+    codes = cv2.imread(str(tmp_path / "g.png"), cv2.IMREAD_UNCHANGED)
+    lin = image.astype(np.float64)
+    srgb = np.where(lin <= 0.0031308, 12.92 * lin, 1.055 * lin ** (1 / 2.4) - 0.055)
+    np.testing.assert_array_equal(codes, np.rint(srgb * 255).astype(np.uint8))
+
+
+@pytest.mark.parametrize("shape", [(13, 19), (13, 19, 3)])
+def test_linear16_and_float32_tiff(tmp_path, shape):
+    image = ramp(shape, np.random.default_rng(4))
+    write_image(tmp_path / "l.tif", image, encoding="linear16")
+    assert np.max(np.abs(read_frame(tmp_path / "l.tif") - image)) <= 0.5 / 65535 + 1e-7
+    raw_codes = tifffile.imread(tmp_path / "l.tif")
+    np.testing.assert_array_equal(raw_codes, np.rint(image.astype(np.float64) * 65535))
+    wide = image * 3 - 1  # float32 is written unclipped, exactly
+    write_image(tmp_path / "f.tif", wide, encoding="float32")
+    back = read_frame(tmp_path / "f.tif")
+    assert back.dtype == np.float32
+    np.testing.assert_array_equal(back, wide)
+
+
+def test_integer_encoding_clips(tmp_path):
+    image = np.array([[-0.5, 0.0, 1.0, 2.0]], dtype=np.float32)
+    write_image(tmp_path / "c.png", image)
+    np.testing.assert_array_equal(
+        cv2.imread(str(tmp_path / "c.png"), cv2.IMREAD_UNCHANGED), [[0, 0, 255, 255]]
+    )
+
+
+def test_jpeg_round_trip(tmp_path):
+    yy, xx = np.mgrid[0:64, 0:96]
+    image = np.stack([xx / 95, yy / 63, (xx + yy) / 158], axis=-1).astype(np.float32) ** 2
+    write_image(tmp_path / "s.jpg", image)
+    back = read_frame(tmp_path / "s.jpg")
+    assert back.shape == image.shape
+    # JPEG q95 on a smooth image: small error in the encoded domain.
+    err = np.abs(linear_to_srgb(back) - linear_to_srgb(image))
+    assert err.mean() < 0.01 and err.max() < 0.06
+
+
+@pytest.mark.parametrize("ext", [".jpg", ".png"])
+def test_exif_is_carried(tmp_path, shared_data, ext):
+    source = shared_data / "focusstack-pcb" / "pcb7" / "pcb_001.jpg"
+    exif = read_exif(source)
+    assert exif is not None and exif.startswith(b"Exif\x00\x00")
+    out = tmp_path / f"o{ext}"
+    write_image(out, np.full((8, 8, 3), 0.5, np.float32), exif=exif)
+    assert read_exif(out) == exif
+    with Image.open(source) as src, Image.open(out) as dst:  # an independent EXIF parser
+        assert dst.getexif()[0x0110] == src.getexif()[0x0110]  # camera model
+    assert read_frame(out).shape == (8, 8, 3)
+
+
+def test_subject_distance(tmp_path, shared_data):
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0x9206] = IFDRational(1234, 1000)  # 1.234 m
+    write_image(tmp_path / "d.jpg", np.zeros((8, 8), np.float32), exif=exif.tobytes())
+    assert subject_distance_mm(tmp_path / "d.jpg") == pytest.approx(1234.0)
+    exif.get_ifd(0x8769)[0x9206] = IFDRational(0xFFFFFFFF, 1)
+    write_image(tmp_path / "i.jpg", np.zeros((8, 8), np.float32), exif=exif.tobytes())
+    assert subject_distance_mm(tmp_path / "i.jpg") == math.inf
+    # pcb has no SubjectDistance; the beetle's is 0 ("unknown"); the DNG has none.
+    assert subject_distance_mm(shared_data / "focusstack-pcb" / "pcb7" / "pcb_001.jpg") is None
+    assert subject_distance_mm(shared_data / "chimpstackr-beetle" / "DSC_0356.jpg") is None
+    assert subject_distance_mm(shared_data / "raw-dng-canon550d" / "colorchart.dng") is None
+
+
+def test_write_json(tmp_path):
+    write_json(tmp_path / "r.json", {"a": np.float32(0.5), "h": np.eye(2), "p": tmp_path})
+    assert (tmp_path / "r.json").read_text().startswith("{\n")
+    with pytest.raises(InputError, match="JSON"):
+        write_json(tmp_path / "bad.json", {"x": float("nan")})
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["r.json"]
+
+
+# --- atomic writes and refusals -------------------------------------------------------------
+
+
+def test_write_onto_directory_leaves_nothing(tmp_path):
+    target = tmp_path / "out.png"
+    target.mkdir()
+    with pytest.raises(InputError, match=r"out\.png"):
+        write_image(target, np.zeros((4, 4), np.float32))
+    assert target.is_dir() and not any(target.iterdir())
+    assert [p.name for p in tmp_path.iterdir()] == ["out.png"]  # no temporary file left
+
+
+@pytest.mark.parametrize("name", ["out.png", "out.jpg", "out.tif"])
+def test_failed_write_keeps_existing_file(tmp_path, name):
+    target = tmp_path / name
+    write_image(target, np.full((4, 4), 0.25, np.float32))
+    before = target.read_bytes()
+    bad = np.full((4, 4), 0.25, np.float32)
+    bad[1, 2] = np.nan
+    with pytest.raises(InputError, match="NaN"):
+        write_image(target, bad)
+    assert target.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == [name]
+
+
+def test_write_into_missing_directory(tmp_path):
+    with pytest.raises(InputError, match="cannot write"):
+        write_image(tmp_path / "nope" / "a.png", np.zeros((2, 2), np.float32))
+
+
+@pytest.mark.parametrize(
+    ("name", "image", "kwargs", "match"),
+    [
+        ("a.png", np.zeros((2, 2), np.uint8), {}, "float linear light"),
+        ("a.png", np.zeros((2, 2, 2), np.float32), {}, "shape"),
+        ("a.bmp", np.zeros((2, 2), np.float32), {}, "extension"),
+        ("a.jpg", np.zeros((2, 2), np.float32), {"encoding": "srgb16"}, "encoding"),
+        ("a.png", np.zeros((2, 2), np.float32), {"encoding": "float32"}, "encoding"),
+    ],
+)
+def test_write_refusals(tmp_path, name, image, kwargs, match):
+    with pytest.raises(InputError, match=match):
+        write_image(tmp_path / name, image, **kwargs)
+    assert not any(tmp_path.iterdir())
+
+
+# --- bad input files -------------------------------------------------------------------------
+
+
+def cut(src, dst, fraction):
+    data = src.read_bytes()
+    dst.write_bytes(data[: int(len(data) * fraction)])
+    return dst
+
+
+@pytest.mark.parametrize("fraction", [0.05, 0.6, 0.99])
+def test_truncated_jpeg(tmp_path, shared_data, fraction):
+    bad = cut(shared_data / "focusstack-pcb" / "pcb7" / "pcb_003.jpg", tmp_path / "t.jpg", fraction)
+    for func in (read_frame, frame_info):
+        with pytest.raises(InputError, match=r"t\.jpg: truncated"):
+            func(bad)
+
+
+@pytest.mark.parametrize("fraction", [0.001, 0.5, 0.99])
+def test_truncated_dng(tmp_path, shared_data, fraction, capfd):
+    bad = cut(shared_data / "raw-dng-canon550d" / "colorchart.dng", tmp_path / "t.dng", fraction)
+    with pytest.raises(InputError, match=r"t\.dng: LibRaw cannot decode it.*truncated"):
+        read_frame(bad)
+    capfd.readouterr()  # LibRaw reports "Unexpected end of file" on stderr itself
+
+
+def test_truncated_png(tmp_path):
+    write_image(tmp_path / "ok.png", np.zeros((40, 40, 3), np.float32))
+    bad = cut(tmp_path / "ok.png", tmp_path / "t.png", 0.8)
+    with pytest.raises(InputError, match=r"t\.png: truncated PNG"):
+        read_frame(bad)
+
+
+@pytest.mark.parametrize("name", ["x.jpg", "x.png", "x.tif", "x.dng", "x.nef"])
+def test_not_an_image(tmp_path, name, capfd):
+    (tmp_path / name).write_bytes(b"this is not an image at all" * 10)
+    with pytest.raises(InputError, match=rf"{name.replace('.', '[.]')}"):
+        read_frame(tmp_path / name)
+    capfd.readouterr()
+
+
+def test_missing_and_unsupported(tmp_path):
+    with pytest.raises(InputError, match="no such image file"):
+        read_frame(tmp_path / "missing.jpg")
+    (tmp_path / "notes.txt").write_text("x")
+    with pytest.raises(InputError, match="unsupported image extension"):
+        read_frame(tmp_path / "notes.txt")
+
+
+# --- real data -------------------------------------------------------------------------------
+
+
+def test_pcb_jpeg(shared_data):
+    path = shared_data / "focusstack-pcb" / "pcb7" / "pcb_001.jpg"
+    image = read_frame(path)
+    assert image.shape == (1536, 2048, 3) and image.dtype == np.float32
+    assert frame_info(path).shape == image.shape
+    codes = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)[:, :, ::-1]
+    np.testing.assert_allclose(image, eotf(codes, 255), rtol=1e-6, atol=1e-9)
+
+
+def test_kdc_decodes(shared_data):
+    path = shared_data / "raw-kdc-kodak-dc50" / "RAW_KODAK_DC50.KDC"
+    image = read_frame(path)
+    assert image.shape == (512, 768, 3) and image.dtype == np.float32
+    assert frame_info(path).shape == image.shape
+    assert 0.0 <= image.min() and image.max() <= 1.0 and 0.01 < image.mean() < 0.9
+
+
+# ColorChecker patches in colorchart.dng (row, col centres of the 6x4 lower chart).
+PATCH_ROWS = (624, 720, 820, 926)
+PATCH_COLS = (710, 820, 930, 1034, 1144, 1250)
+HALF = 16
+
+
+def patch_means(shared_data):
+    """Per patch: black-subtracted, white-normalised raw means per CFA colour and decoded means."""
+    path = shared_data / "raw-dng-canon550d" / "colorchart.dng"
+    decoded = read_frame(path)
+    with rawpy.imread(str(path)) as raw:
+        mosaic = raw.raw_image_visible.astype(np.float64)
+        colours = raw.raw_colors_visible.copy()
+        black = np.array(raw.black_level_per_channel, dtype=np.float64)
+        white = float(raw.white_level)
+    assert decoded.shape[:2] == mosaic.shape  # flip 0: same pixel grid
+    raw_means, dec_means = [], []
+    for r in PATCH_ROWS:
+        for c in PATCH_COLS:
+            win = (slice(r - HALF, r + HALF), slice(c - HALF, c + HALF))
+            m, k = mosaic[win], colours[win]
+            norm = [(m[k == i] - black[i]).mean() / (white - black[i]) for i in range(4)]
+            raw_means.append([norm[0], (norm[1] + norm[3]) / 2, norm[2]])  # R, G (2 sites), B
+            dec_means.append(decoded[win].reshape(-1, 3).mean(axis=0))
+    return np.array(raw_means), np.array(dec_means, dtype=np.float64)
+
+
+def linear_fit_residual(raw_means, values):
+    """Max residual of the best fit ``values = raw_means @ M`` (3x3, no offset), relative."""
+    m, *_ = np.linalg.lstsq(raw_means, values, rcond=None)
+    return np.max(np.abs(raw_means @ m - values)) / np.max(values)
+
+
+def test_dng_is_linear_in_raw_values(shared_data):
+    raw_means, dec = patch_means(shared_data)
+    # Grey row (last 6 patches): decoded green / raw green is one constant (no gamma, no curve).
+    ratio = dec[18:, 1] / raw_means[18:, 1]
+    assert ratio.max() / ratio.min() < 1.06
+    # All 24 patches: decoded RGB is a linear map (the colour matrix x white balance) of raw RGB.
+    assert linear_fit_residual(raw_means, dec) < 0.01
+    # The same checks fail for gamma-encoded data, so they do detect a curve.
+    gamma = dec ** (1 / 2.2)
+    g_ratio = gamma[18:, 1] / raw_means[18:, 1]
+    assert g_ratio.max() / g_ratio.min() > 2
+    assert linear_fit_residual(raw_means, gamma) > 0.1
+
+
+def test_dng_normalised_by_black_and_white(shared_data):
+    """Green has white-balance gain 1: grey-patch green ~ (raw - black) / (white - black)."""
+    raw_means, dec = patch_means(shared_data)
+    ratio = dec[18:, 1] / raw_means[18:, 1]
+    assert 0.9 < np.median(ratio) < 1.1
+    path = shared_data / "raw-dng-canon550d" / "colorchart.dng"
+    assert frame_info(path).shape == (1156, 1734, 3)
+
+
+def test_no_stray_files_in_cwd(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    write_image("rel.png", np.zeros((2, 2), np.float32))
+    assert sorted(os.listdir(tmp_path)) == ["rel.png"]

@@ -1,0 +1,250 @@
+"""Real PTP code through real pyusb against the emulated camera backend."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import pytest
+import usb.core
+
+from pipeline import cli
+from pipeline.errors import InputError, TetherError
+from pipeline.profiles import load_lens
+from pipeline.tether.camera import CapturedObject, EndStop
+from pipeline.tether.codes import OC, CanonOC, NikonOC
+from pipeline.tether.emulator import (
+    CANON,
+    NIKON,
+    EmulatedBackend,
+    EmulatedCamera,
+    Faults,
+    OtherDevice,
+    Personality,
+)
+from pipeline.tether.flows import StackPlan, capture_stack, capture_sweep, connect
+from pipeline.tether.scene import UM_PER_STEP
+from pipeline.tether.session import UnsupportedCamera
+from pipeline.tether.transport import MAX_TRANSFER, DeviceGone, EndpointStalled, TransportTimeout
+
+NO_WAIT = {"sleep": lambda _s: None}
+
+
+def _stack(cam, out, plan, **kw):
+    with connect(EmulatedBackend(cam), **NO_WAIT, **kw) as camera:
+        return capture_stack(camera, out, plan, lens="sigma-30mm-f1.4-canon-eos-20d")
+
+
+def _assert_safe(cam):
+    assert not cam.evf_on and cam.remote_mode == 0 and not cam.live_view
+    assert not cam.session_open
+
+
+def test_pyusb_sees_the_emulator_as_a_still_image_device():
+    dev = usb.core.find(backend=EmulatedBackend(EmulatedCamera(CANON)))
+    intf = dev.get_active_configuration()[(0, 0)]
+    assert (intf.bInterfaceClass, intf.bInterfaceSubClass, intf.bInterfaceProtocol) == (6, 1, 1)
+    assert usb.util.get_string(dev, dev.iProduct) == "Canon EOS (emulated)"
+
+
+@pytest.mark.parametrize(("personality", "frames", "step", "direction"),
+                         [(CANON, 20, 12, "far"), (NIKON, 8, 15, "near")])
+def test_stack_steps_match_motor_log(tmp_path, personality, frames, step, direction):
+    cam = EmulatedCamera(personality, position=0 if direction == "far" else 300)
+    result = _stack(cam, tmp_path, StackPlan(frames, step, direction, 0.0))
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert meta["kind"] == "focal-stack" and "partial" not in meta
+    assert len(meta["frames"]) == frames == len(cam.shots)
+    start = cam.shots[0][1]
+    units = personality.steps_per_size[1]
+    for frame, (_handle, motor) in zip(meta["frames"], cam.shots):
+        assert frame["focus_step"] * units == motor - start  # the emulator's motor position
+        assert (tmp_path / frame["file"]).stat().st_size > 1000
+    assert [m for _t, m in cam.motor_log][-1] == cam.shots[-1][1]
+    tids = [t for t, op, _p in cam.transactions if op not in (OC.GetDeviceInfo, OC.OpenSession)]
+    assert tids == list(range(1, len(tids) + 1))  # transaction ids count up in the session
+    assert result.frames[-1][1] == (frames - 1) * step * (1 if direction == "far" else -1)
+    _assert_safe(cam)
+
+
+def test_downloads_with_zlp_on_both_directions(tmp_path):
+    cam = EmulatedCamera(CANON)
+    payload = bytes(range(256)) * ((MAX_TRANSFER + 500) // 256 + 10)
+    cam.objects[99] = ("BIG.JPG", payload)
+    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+        # data container of MAX_TRANSFER + 512 bytes: a full first read, then one packet + ZLP
+        obj = CapturedObject(99, len(payload), "BIG.JPG")
+        assert camera.download(obj, chunk=MAX_TRANSFER + 500) == payload
+        assert camera.session.transport._pending == b""
+        # host-to-device data phase of exactly one packet (12 + 500 bytes) must end with a ZLP
+        before = cam.zlps_received
+        camera.session.transaction(CanonOC.SetDevicePropValueEx,
+                                   data_out=(12).to_bytes(4, "little") + bytes(496))
+        assert cam.zlps_received == before + 1
+
+
+def test_busy_responses_are_retried(tmp_path):
+    cam = EmulatedCamera(CANON, faults=Faults(busy_responses=6))
+    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+        capture_stack(camera, tmp_path, StackPlan(4, 3, settle_s=0.0), lens="l")
+        assert camera.session.retried == 6
+    assert cam.busy_given == 6 and len(cam.shots) == 4
+
+
+def test_end_stop_is_reported_and_camera_made_safe(tmp_path):
+    cam = EmulatedCamera(NIKON, position=380, limits=(0, 400))
+    with pytest.raises(EndStop, match="far end stop"):
+        _stack(cam, tmp_path, StackPlan(6, 10, "far", 0.0))
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert meta["partial"] is True and len(meta["frames"]) == 3
+    _assert_safe(cam)
+
+
+def test_unplug_mid_stack_keeps_downloaded_frames(tmp_path):
+    cam = EmulatedCamera(CANON, faults=Faults(unplug_on_download=3))
+    with pytest.raises(DeviceGone, match=r"camera disconnected after 3 of 10 frames"):
+        _stack(cam, tmp_path, StackPlan(10, 5, settle_s=0.0))
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert meta["partial"] is True
+    assert [f["file"] for f in meta["frames"]] == [f"frame_{i:03d}.jpg" for i in range(3)]
+    assert all((tmp_path / f["file"]).is_file() for f in meta["frames"])
+    assert not (tmp_path / "frame_003.jpg").exists()
+
+
+def test_timeout_cancels_and_session_stays_usable():
+    cam = EmulatedCamera(CANON)
+    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+        cam.faults.timeout_on = CanonOC.DriveLens
+        with pytest.raises(TransportTimeout, match="cancelled"):
+            camera.drive(1)
+        hung = [t for t, op, _p in cam.transactions if op == CanonOC.DriveLens][-1]
+        assert cam.cancelled == [hung]  # class request 0x64 named the hung transaction
+        camera.drive(2)
+        assert cam.position == 2
+        cam.faults.stall_on = CanonOC.GetEvent
+        with pytest.raises(EndpointStalled):
+            camera.poll_events()
+        assert 0x81 in cam.halts_cleared
+        assert camera.capture().size > 0
+    _assert_safe(cam)
+
+
+def test_keyboard_interrupt_restores_camera(tmp_path):
+    cam = EmulatedCamera(CANON)
+
+    def interrupt(index, _name, _step):
+        if index == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt), connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+        assert cam.evf_on and cam.remote_mode == 1
+        capture_stack(camera, tmp_path, StackPlan(8, 2, settle_s=0.0), lens="l",
+                      on_frame=interrupt)
+    _assert_safe(cam)
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert meta["partial"] is True and len(meta["frames"]) == 3
+
+
+@pytest.mark.parametrize("personality", [CANON, NIKON])
+def test_sweep_drives_during_bulb_when_allowed(tmp_path, personality):
+    cam = EmulatedCamera(personality, shutter="bulb",
+                         faults=Faults(refuse_drive_while_exposing=False))
+    schedule = [(0.02 * i, 5) for i in range(1, 6)]
+    with connect(EmulatedBackend(cam), bulb=True, **NO_WAIT) as camera:
+        result = capture_sweep(camera, tmp_path, schedule, 0.15, lens="l", fallback_step=5)
+    assert not result.fell_back and len(cam.shots) == 1
+    assert cam.shots[0][1] == 25 * personality.steps_per_size[1]
+    drives = tomllib.loads((tmp_path / "drives.toml").read_text())["drives"]
+    times = [d["t_s"] for d in drives]
+    assert [d["steps"] for d in drives] == [5] * 5
+    assert times == sorted(times) and all(t >= s for t, (s, _n) in zip(times, schedule))
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert meta["kind"] == "sweep" and (tmp_path / meta["sweep"]["file"]).is_file()
+    _assert_safe(cam)
+
+
+def test_sweep_falls_back_to_dense_stack_when_refused(tmp_path, capsys):
+    rc = cli.main(["tether", "sweep", "-o", str(tmp_path), "--steps", "40", "--exposure", "0.2",
+                   "--emulate", "nikon", "--fallback-step", "10"])
+    assert rc == 0
+    assert "falling back to a dense focal stack of 5 frames" in capsys.readouterr().out
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert [f["focus_step"] for f in meta["frames"]] == [0, 10, 20, 30, 40]
+
+
+def test_no_camera_lists_what_was_seen():
+    with pytest.raises(TetherError, match=r"no PTP camera.*1d6b:0002 \(unknown vendor, class 9\)"):
+        with connect(EmulatedBackend(OtherDevice()), **NO_WAIT):
+            pass
+
+
+def test_unsupported_camera_names_missing_operations():
+    ops = tuple(op for op in CANON.operations if op != CanonOC.DriveLens)
+    cam = EmulatedCamera(Personality("canon", 0x04A9, 0x3000, "Canon Inc.", "Old EOS", 0xB, ops,
+                                     "jpeg"))
+    with pytest.raises(UnsupportedCamera, match=r"Old EOS cannot capture a focal stack: it lacks "
+                                                r"DriveLens \(0x9155\)"):
+        with connect(EmulatedBackend(cam), **NO_WAIT):
+            pass
+    assert not cam.session_open
+
+
+@pytest.mark.parametrize(("frames", "step", "match"),
+                         [(0, 5, "--frames"), (5, 0, "--step"), (5, -3, "--step")])
+def test_invalid_plan(frames, step, match):
+    with pytest.raises(InputError, match=match):
+        StackPlan(frames, step)
+
+
+def test_cli_errors_are_one_line(tmp_path, capsys):
+    assert cli.main(["tether", "stack", "-o", str(tmp_path), "--frames", "3", "--step", "0",
+                     "--emulate", "canon"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "--step must be an integer >= 1" in err
+    assert cli.main(["tether", "stack", "-o", str(tmp_path), "--frames", "3", "--step", "2",
+                     "--emulate", "nikon", "--drive-size", "2"]) == 2
+    assert "Nikon MfDrive has no step sizes" in capsys.readouterr().err
+
+
+def test_calibration_recovers_emulator_step_size(tmp_path):
+    stack, profile = tmp_path / "stack", tmp_path / "lens.toml"
+    assert cli.main(["tether", "stack", "-o", str(stack), "--frames", "12", "--step", "20",
+                     "--emulate", "canon", "--settle-ms", "0"]) == 0
+    # the emulator's step 0 focuses 600 mm (+0.1 mm), so the reference p is ~ f u / (u - f)
+    assert cli.main(["tether", "calibrate", str(stack), "--lens", "sigma-30mm-f1.4-canon-eos-20d",
+                     "-o", str(profile), "--reference-focus-distance-mm", "600"]) == 0
+    lens = load_lens(profile)
+    assert math.isclose(lens.step_image_distance_um, UM_PER_STEP, rel_tol=0.05)
+    assert lens.focal_length_mm == 30.0
+
+
+def test_emulated_stack_processes_to_edof(tmp_path: Path):
+    """Capture with the emulator, then run the lead's ``flexdof stack`` on it."""
+    stack, out = tmp_path / "stack", tmp_path / "edof.tif"
+    assert cli.main(["tether", "stack", "-o", str(stack), "--frames", "20", "--step", "12",
+                     "--emulate", "canon", "--settle-ms", "0"]) == 0
+    assert cli.main(["stack", str(stack), "-o", str(out)]) == 0
+    assert out.is_file()
+
+
+def test_nikon_step_too_small_is_an_input_error():
+    cam = EmulatedCamera(NIKON)
+    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+        with pytest.raises(InputError, match="too small"):
+            camera._drive(0)  # amount 0: MfDriveStepInsufficiency from DeviceReady
+    assert NikonOC.MfDrive in {op for _t, op, _p in cam.transactions}
+
+
+def test_device_reset_closes_the_session_and_it_can_reopen():
+    cam = EmulatedCamera(NIKON)
+    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+        transport = camera.session.transport
+        assert transport.device_status() == (0x2001, ())  # Get Device Status 0x67: OK
+        transport.reset()  # Device Reset 0x66
+        assert not cam.session_open
+        camera.session.is_open = False
+        camera.session.open()
+        assert cam.session_open
+        camera.start()
+    _assert_safe(cam)
