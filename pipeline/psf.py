@@ -249,7 +249,7 @@ def raster_pillbox(diameter_px: float, half: int) -> np.ndarray:
     quadrant = np.diff(np.diff(cumulative, axis=0), axis=1)
     quadrant[0, :] *= 2  # the centre row/column straddle the axes: their halves mirror
     quadrant[:, 0] *= 2
-    kernel = _mirror_quadrant(quadrant)
+    kernel = np.clip(_mirror_quadrant(quadrant), 0.0, None)  # rounding leaves -1e-17s
     return kernel / (np.pi * radius**2)
 
 

@@ -449,3 +449,15 @@ def test_reduction_geometry_matches_cv2_resize(small):
     np.testing.assert_allclose(
         apply_h(_scaling((600, 800), small), [[x0, y0]])[0], centroid, atol=0.01
     )
+
+
+def test_similarity_projection_keeps_the_image_centre():
+    from pipeline.align import _project
+
+    affine = np.array([[1.05, 0.02, 3.0], [-0.01, 0.97, -2.0], [0.0, 0.0, 1.0]])
+    sim = _project(affine, "similarity", (300, 400))
+    centre = np.array([[199.5, 149.5]])
+    np.testing.assert_allclose(apply_h(sim, centre), apply_h(affine, centre), atol=1e-9)
+    a, b = sim[0, 0], sim[1, 0]
+    np.testing.assert_allclose(sim[:2, :2], [[a, -b], [b, a]])
+    assert a == pytest.approx((1.05 + 0.97) / 2) and b == pytest.approx((-0.01 - 0.02) / 2)
