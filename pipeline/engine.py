@@ -17,7 +17,6 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import logging
-import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -31,7 +30,7 @@ from pipeline.errors import InputError
 from pipeline.io import read_exif, read_frame, write_image, write_json
 from pipeline.motion import constant_speed
 from pipeline.profiles import Lens, load_lens
-from pipeline.stack import Stack, check_frames, image_distances_mm, load_stack, sweep_profile
+from pipeline.stack import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.tiling import deconvolve_tiled
 from pipeline.weights import constant_speed_weights
 
@@ -256,13 +255,15 @@ def process_stack(
     written atomically.
     """
     output = Path(output)
-    _check_output(output)
+    check_output(output)
     timings: dict[str, float] = {}
     start = time.perf_counter()
     stack = load_stack(paths)
     lens = _resolve_lens(stack, options)
     if stack.kind == "sweep":
-        return _process_sweep(stack, lens, output, options, start, progress)
+        from pipeline.sweep import process_sweep_stack
+
+        return process_sweep_stack(stack, lens, output, options, progress=progress)
     info = check_frames(stack)
     shape = info.shape
     n = len(stack)
@@ -304,7 +305,11 @@ def process_stack(
     progress("accumulate", 1, 1)
     timings["accumulate"] = time.perf_counter() - t0
 
-    result, timings["deconvolve"] = _deconvolve(average, clipped, kernel, options, progress)
+    progress("deconvolve", 0, 1)
+    t0 = time.perf_counter()
+    result = restore_image(average, kernel, options, clipped=clipped)
+    timings["deconvolve"] = time.perf_counter() - t0
+    progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])
     frames_meta = [
         {
@@ -331,10 +336,11 @@ def process_stack(
         "kernel": kernel_summary,
         "partial_stack": stack.partial,
     }
-    return _finish(output, result, kernel, sidecar, timings, start, options, exif)
+    return write_result(output, result, kernel, sidecar, timings, start, options, exif)
 
 
-def _check_output(output: Path) -> None:
+def check_output(output: Path) -> None:
+    """Refuse an output whose folder is missing or whose format is unknown, before any work."""
     if not output.parent.is_dir():
         raise InputError(f"output {output}: the folder {output.parent} does not exist")
     if output.suffix.lower() not in (".tif", ".tiff", ".png", ".jpg", ".jpeg"):
@@ -372,21 +378,26 @@ def _align(stack, options, positions, absolute, lens, shape, progress):
     return alignments
 
 
-def _deconvolve(image, clipped, kernel, options, progress):
-    t0 = time.perf_counter()
-    progress("deconvolve", 0, 1)
+def clipped_pixels(image: np.ndarray) -> np.ndarray:
+    """Pixels at the clipping level in any channel."""
+    return np.any(image >= SATURATION, axis=-1) if image.ndim == 3 else image >= SATURATION
+
+
+def restore_image(image, kernel, options: StackOptions, *, clipped=None) -> np.ndarray:
+    """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2)."""
+    clipped = clipped_pixels(image) if clipped is None else clipped
     censored = image.copy()
-    censored[clipped] = np.maximum(censored[clipped], 1.0)  # clipped in any frame: no data there
+    censored[clipped] = np.maximum(censored[clipped], 1.0)  # clipped in any frame: no data
     result = deconvolve_tiled(
         censored, kernel, method=options.method, tile_px=options.tile_px, saturation=1.0
     )
-    progress("deconvolve", 1, 1)
-    return result, time.perf_counter() - t0
-
-
-def _finish(output, result, kernel, sidecar, timings, start, options, exif) -> StackResult:
     if not np.all(np.isfinite(result)):
         raise InputError("deconvolution produced non-finite values; try --method rl")
+    return result
+
+
+def write_result(output, result, kernel, sidecar, timings, start, options, exif) -> StackResult:
+    """Write the image, the optional kernel and ``OUTPUT.json`` (each atomically)."""
     t0 = time.perf_counter()
     write_image(output, result, encoding=options.encoding, exif=exif)
     if options.save_kernel is not None:
@@ -397,32 +408,3 @@ def _finish(output, result, kernel, sidecar, timings, start, options, exif) -> S
     sidecar["timings_s"] = timings
     write_json(output.with_name(output.name + ".json"), sidecar)
     return StackResult(output, sidecar, result)
-
-
-def _process_sweep(stack, lens, output, options, start, progress) -> StackResult:
-    """A single focus-sweep capture (Sec. 4, 8): deconvolve with the IPSF of its motion."""
-    if lens is None:
-        raise InputError(f"{stack.base_dir}: a sweep capture needs a lens (stack.toml or --lens)")
-    timings: dict[str, float] = {}
-    t0 = time.perf_counter()
-    image = read_frame(stack.sweep.file)
-    timings["read"] = time.perf_counter() - t0
-    profile = sweep_profile(stack, lens)
-    p_lo, p_hi = profile.range_mm
-    middle = optics.focus_distance(lens.focal_length_mm, 0.5 * (p_lo + p_hi))
-    kernel = psf.integrated_psf(lens, middle, profile)
-    clipped = np.any(image >= SATURATION, axis=-1) if image.ndim == 3 else image >= SATURATION
-    result, timings["deconvolve"] = _deconvolve(image, clipped, kernel, options, progress)
-    sidecar = {
-        "version": 1,
-        "inputs": [str(stack.sweep.file)],
-        "lens": lens.source or lens.name,
-        "method": options.method,
-        "sweep": {"image_distance_mm": [p_lo, p_hi], "exposure_s": profile.exposure_s},
-        "kernel": {"size": int(kernel.shape[0]), "source": "analytic-eq6", "depth_mm": middle},
-    }
-    if not math.isfinite(middle):
-        sidecar["kernel"]["depth_mm"] = "inf"
-    return _finish(
-        output, result, kernel, sidecar, timings, start, options, read_exif(stack.sweep.file)
-    )
