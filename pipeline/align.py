@@ -34,6 +34,7 @@ __all__ = [
     "compose",
     "estimate_alignment",
     "map_points",
+    "rescale_homography",
     "scale_of",
     "warp",
 ]
@@ -152,7 +153,9 @@ def _scaling(from_shape: tuple[int, int], to_shape: tuple[int, int]) -> np.ndarr
     return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _rescale(h: np.ndarray, from_shape: tuple[int, int], to_shape: tuple[int, int]) -> np.ndarray:
+def rescale_homography(
+    h: np.ndarray, from_shape: tuple[int, int], to_shape: tuple[int, int]
+) -> np.ndarray:
     """Express ``h`` (acting on pixels of ``from_shape`` images) on ``to_shape`` pixels."""
     s = _scaling(from_shape, to_shape)
     out = s @ h @ np.linalg.inv(s)
@@ -274,12 +277,12 @@ def _ecc(
     level) and the final correlation coefficient.
     """
     finest = template[-1].shape
-    w = _rescale(init, finest, template[start_level].shape)
+    w = rescale_homography(init, finest, template[start_level].shape)
     cc = -1.0
     for level in range(start_level, len(template)):
         t, m = template[level], image[level]
         if level > start_level:
-            w = _rescale(w, template[level - 1].shape, t.shape)
+            w = rescale_homography(w, template[level - 1].shape, t.shape)
         iterations = 100 if level == 0 else (12 if level == len(template) - 1 else 30)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-5)
         warp32 = (w if model == "homography" else w[:2]).astype(np.float32)
@@ -487,7 +490,7 @@ def estimate_alignment(
         for i in side:
             try:
                 w, cc, how = match(i, anchor)
-                h = compose(out[anchor].homography, _rescale(w, reduced, full_shape))
+                h = compose(out[anchor].homography, rescale_homography(w, reduced, full_shape))
                 why = _implausible(h, full_shape)
                 if why:
                     raise _EstimationError(f"composed transform: {why}")

@@ -31,6 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import fft as sfft
+from scipy import ndimage
 
 from pipeline.errors import InputError
 
@@ -114,11 +115,19 @@ def _per_channel(name: str, value, channels: int) -> np.ndarray | None:
 
 
 # ----------------------------------------------------------------------------- statistics
-def _valid_mask(y: np.ndarray, saturation: float | None) -> np.ndarray:
-    """Pixels that obey the linear model (not clipped at ``saturation``)."""
-    if saturation is None:
-        return np.ones(y.shape, dtype=bool)
-    return y < saturation
+def _valid_mask(y: np.ndarray, saturation: float | None, censored=None) -> np.ndarray:
+    """Pixels that obey the linear model: not clipped at ``saturation`` nor ``censored``.
+
+    ``censored`` (rows, cols) marks pixels whose true value is only known to be at
+    least the observed one (e.g. a focal-stack average where a frame clipped).
+    """
+    valid = np.ones(y.shape, dtype=bool) if saturation is None else y < saturation
+    if censored is not None:
+        censored = np.asarray(censored, dtype=bool)
+        if censored.shape != y.shape[:2]:
+            raise InputError(f"censored must have shape {y.shape[:2]}, got {censored.shape}")
+        valid &= ~censored[..., np.newaxis]
+    return valid
 
 
 def _noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
@@ -233,13 +242,48 @@ def _laplacian_spectrum(shape: tuple[int, int], dtype) -> np.ndarray:
     return (4.0 - 2.0 * np.cos(wy) - 2.0 * np.cos(wx)).astype(dtype)
 
 
-def _wiener_gain(k_fft: np.ndarray, d2: np.ndarray, lam: float, prior: str) -> np.ndarray:
+def _wiener_gain(k_fft, d2, lam: float, prior: str, variance=None) -> np.ndarray:
     if prior == "natural":
         reg = d2
     else:  # flat spectrum of the zero-mean part: the mean (DC) is not regularised
         reg = np.ones_like(d2)
         reg[0, 0] = 0.0
-    return np.conj(k_fft) / (np.abs(k_fft) ** 2 + lam * reg)  # Wiener, Sec. 4.3 [24]
+    denominator = np.abs(k_fft) ** 2 + lam * reg  # Wiener, Sec. 4.3 [24]
+    if variance is not None:
+        denominator = denominator + variance(k_fft.shape)
+    return np.conj(k_fft) / denominator
+
+
+def kernel_variance(samples, kernel):
+    """``V(w) = mean_u |K_u(w) - K(w)|^2`` of per-depth kernels around the one used.
+
+    With a depth-dependent blur ``K_u`` of mean ``K`` and variance ``V``, the linear
+    estimate minimising the expected error is ``K* / (|K|^2 + V + lam |D|^2)``:
+    frequencies where the IPSF is not depth-invariant (Eq. 8) are not amplified.
+    ``V`` is computed on a small grid (the kernels are compact, so it is smooth)
+    and returned as a function of an rfft grid shape that interpolates it there.
+    """
+    samples = np.asarray(samples, dtype=np.float64)
+    if samples.ndim != 3 or samples.shape[1:] != np.shape(kernel):
+        raise InputError(
+            f"kernel_samples must have shape (n, {np.shape(kernel)[0]}, {np.shape(kernel)[1]}), "
+            f"got {samples.shape}"
+        )
+    n = sfft.next_fast_len(max(64, 4 * max(samples.shape[1:])))
+    mean_fft = _kernel_fft(np.asarray(kernel, np.float64), (n, n), np.float64)
+    var = np.mean(
+        [np.abs(_kernel_fft(k, (n, n), np.float64) - mean_fft) ** 2 for k in samples], axis=0
+    )
+
+    def on_grid(rshape: tuple[int, int]) -> np.ndarray:
+        rows, half_cols = rshape
+        cols = 2 * (half_cols - 1)
+        fy = sfft.fftfreq(rows)[:, np.newaxis] * n  # in units of the small grid's bins
+        fx = sfft.rfftfreq(cols)[np.newaxis, :] * n
+        coords = np.array(np.broadcast_arrays(np.mod(fy, n), fx))
+        return ndimage.map_coordinates(var, coords, order=1, mode="grid-wrap")
+
+    return on_grid
 
 
 def _tail_depth(h: np.ndarray) -> int:
@@ -312,11 +356,11 @@ def _taper_pad(y: np.ndarray, pad: int, taper: int, shape: tuple[int, int]) -> n
     return (mean + taper_w * (out - mean)).astype(y.dtype, copy=False)
 
 
-def _wiener_channel(y, valid, kernel, lam, prior, pad, passes) -> np.ndarray:
+def _wiener_channel(y, valid, kernel, lam, prior, pad, passes, variance=None) -> np.ndarray:
     taper = max(max(kernel.shape), 16)
     shape = _fast_shape((y.shape[0] + 2 * (pad + taper), y.shape[1] + 2 * (pad + taper)))
     k_fft = _kernel_fft(kernel, shape, y.dtype)
-    gain = _wiener_gain(k_fft, _laplacian_spectrum(shape, y.dtype), lam, prior)
+    gain = _wiener_gain(k_fft, _laplacian_spectrum(shape, y.dtype), lam, prior, variance)
     gain = gain.astype(k_fft.dtype, copy=False)
     crop = tuple(slice(pad + taper, pad + taper + n) for n in y.shape)
     filled = y
@@ -331,8 +375,8 @@ def _wiener_channel(y, valid, kernel, lam, prior, pad, passes) -> np.ndarray:
     raise AssertionError("unreachable")
 
 
-def _wiener_transfer(lam: float, prior: str):
-    return lambda k_fft, d2: _wiener_gain(k_fft, d2, lam, prior)
+def _wiener_transfer(lam: float, prior: str, variance=None):
+    return lambda k_fft, d2: _wiener_gain(k_fft, d2, lam, prior, variance)
 
 
 # ----------------------------------------------------------------------------- extended domain
@@ -363,12 +407,14 @@ class _Domain:
         return np.pad(a, widths, mode="symmetric")
 
     def conv(self, x: np.ndarray) -> np.ndarray:
-        return sfft.irfft2(self.k_fft * sfft.rfft2(x, workers=_WORKERS), s=self.shape,
-                           workers=_WORKERS)
+        return sfft.irfft2(
+            self.k_fft * sfft.rfft2(x, workers=_WORKERS), s=self.shape, workers=_WORKERS
+        )
 
     def corr(self, x: np.ndarray) -> np.ndarray:
-        return sfft.irfft2(np.conj(self.k_fft) * sfft.rfft2(x, workers=_WORKERS),
-                           s=self.shape, workers=_WORKERS)
+        return sfft.irfft2(
+            np.conj(self.k_fft) * sfft.rfft2(x, workers=_WORKERS), s=self.shape, workers=_WORKERS
+        )
 
 
 # ----------------------------------------------------------------------------- Richardson-Lucy
@@ -492,8 +538,16 @@ def _sparse_channel(y, valid, kernel, mu, alpha, iterations, rho) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- plan / restore
-def plan(image, kernel, *, method: str = "wiener", saturation=None, noise_sigma=None,
-         **options) -> Plan:
+def plan(
+    image,
+    kernel,
+    *,
+    method: str = "wiener",
+    saturation=None,
+    noise_sigma=None,
+    censored=None,
+    **options,
+) -> Plan:
     """Resolve the global quantities of a deconvolution once, on the whole image.
 
     Parameters
@@ -508,6 +562,9 @@ def plan(image, kernel, *, method: str = "wiener", saturation=None, noise_sigma=
     noise_sigma : float or sequence, optional
         Noise standard deviation per channel; estimated by
         :func:`estimate_noise_sigma` when omitted.
+    censored : bool array (rows, cols), optional
+        Pixels treated like clipped ones: excluded from the data term, their true
+        value at least the observed one (pass the same mask to :func:`restore`).
     **options
         The method's options, see :func:`wiener`, :func:`richardson_lucy`,
         :func:`sparse`.
@@ -517,19 +574,26 @@ def plan(image, kernel, *, method: str = "wiener", saturation=None, noise_sigma=
     y = _check_image(image)
     k = check_kernel(kernel)
     sat = _check_saturation(saturation)
-    valid = _valid_mask(y, sat)
+    valid = _valid_mask(y, sat, censored)
     sigma = _per_channel("noise_sigma", noise_sigma, y.shape[2])
     if sigma is None:
-        sigma = np.array(
-            [_noise_sigma_2d(y[..., c], valid[..., c]) for c in range(y.shape[2])]
-        )
+        sigma = np.array([_noise_sigma_2d(y[..., c], valid[..., c]) for c in range(y.shape[2])])
     builder = {"wiener": _plan_wiener, "rl": _plan_rl, "sparse": _plan_sparse}[method]
     params, depth = builder(y, valid, k, sigma, **options)
     return Plan(method, k, sat, sigma, params, depth)
 
 
-def _plan_wiener(y, valid, k, sigma, *, prior="natural", regularization=None,
-                 saturation_passes=3):
+def _plan_wiener(
+    y,
+    valid,
+    k,
+    sigma,
+    *,
+    prior="natural",
+    regularization=None,
+    saturation_passes=3,
+    kernel_samples=None,
+):
     if prior not in PRIORS:
         raise InputError(f"prior must be one of {PRIORS}, got {prior!r}")
     passes = int(saturation_passes)
@@ -540,15 +604,21 @@ def _plan_wiener(y, valid, k, sigma, *, prior="natural", regularization=None,
         if prior == "natural":
             scale = _natural_prior_scale(y, valid, sigma, k)
         else:  # white spectrum: E|X|^2 = N s0^2, var(y) = s0^2 sum(k^2) + sigma^2
-            var = np.array([float(np.var(y[..., c][valid[..., c]])) if valid[..., c].any()
-                            else 0.0 for c in range(y.shape[2])])
+            var = np.array(
+                [
+                    float(np.var(y[..., c][valid[..., c]])) if valid[..., c].any() else 0.0
+                    for c in range(y.shape[2])
+                ]
+            )
             scale = np.maximum((var - sigma**2) / float(np.sum(k**2)), sigma**2)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
     lam = np.clip(lam, _LAM_MIN, None)
-    pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior))
+    variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
+    pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))
     # each EM pass re-reads data filled by the previous one: the support grows per pass
     depth = pad * (passes + 1) if not np.all(valid) else pad
-    return {"lam": lam, "prior": prior, "passes": passes, "pad": pad}, depth
+    params = {"lam": lam, "prior": prior, "passes": passes, "pad": pad, "variance": variance}
+    return params, depth
 
 
 def _plan_rl(y, valid, k, sigma, *, iterations=30, damping=None):
@@ -567,8 +637,7 @@ def _plan_rl(y, valid, k, sigma, *, iterations=30, damping=None):
     return {"iterations": iterations, "background": background, "threshold": threshold}, depth
 
 
-def _plan_sparse(y, valid, k, sigma, *, alpha=0.8, weight=0.2, iterations=50,
-                 rho=(3e-3, 0.3)):
+def _plan_sparse(y, valid, k, sigma, *, alpha=0.8, weight=0.2, iterations=50, rho=(3e-3, 0.3)):
     alpha = float(alpha)
     if not 0 < alpha <= 1:
         raise InputError(f"alpha must be in (0, 1], got {alpha!r}")
@@ -588,34 +657,42 @@ def _plan_sparse(y, valid, k, sigma, *, alpha=0.8, weight=0.2, iterations=50,
     return {"mu": mu, "alpha": alpha, "iterations": iterations, "rho": rho}, depth
 
 
-def restore(image, p: Plan) -> np.ndarray:
+def restore(image, p: Plan, censored=None) -> np.ndarray:
     """Apply a :class:`Plan` to ``image``, treated as a complete frame.
 
     Returns an array of the input's shape, float32 for float32 input else float64.
     """
     y = _check_image(image)
-    valid = _valid_mask(y, p.saturation)
+    valid = _valid_mask(y, p.saturation, censored)
     out = np.empty_like(y)
     prm = p.params
     for c in range(y.shape[2]):
         yc, vc = y[..., c], valid[..., c]
         if p.method == "wiener":
             passes = prm["passes"] if not vc.all() else 0
-            xc = _wiener_channel(yc, vc, p.kernel, float(prm["lam"][c]), prm["prior"],
-                                 prm["pad"], passes)
+            xc = _wiener_channel(
+                yc,
+                vc,
+                p.kernel,
+                float(prm["lam"][c]),
+                prm["prior"],
+                prm["pad"],
+                passes,
+                prm["variance"],
+            )
         elif p.method == "rl":
             thr = None if prm["threshold"] is None else float(prm["threshold"][c])
-            xc = _rl_channel(yc, vc, p.kernel, prm["iterations"], float(prm["background"][c]),
-                             thr)
+            xc = _rl_channel(yc, vc, p.kernel, prm["iterations"], float(prm["background"][c]), thr)
         else:
-            xc = _sparse_channel(yc, vc, p.kernel, float(prm["mu"][c]), prm["alpha"],
-                                 prm["iterations"], prm["rho"])
+            xc = _sparse_channel(
+                yc, vc, p.kernel, float(prm["mu"][c]), prm["alpha"], prm["iterations"], prm["rho"]
+            )
         out[..., c] = xc
     return out if np.ndim(image) == 3 else out[..., 0]
 
 
 # ----------------------------------------------------------------------------- public API
-def deconvolve(image, kernel, *, method: str = "wiener", saturation=None, **options):
+def deconvolve(image, kernel, *, method: str = "wiener", saturation=None, censored=None, **options):
     """Deconvolve ``image`` with ``kernel`` (Sec. 4.2): dispatch to a method.
 
     Parameters
@@ -636,11 +713,21 @@ def deconvolve(image, kernel, *, method: str = "wiener", saturation=None, **opti
     ndarray
         Same shape; float32 for float32 input, else float64. Never clipped.
     """
-    return restore(image, plan(image, kernel, method=method, saturation=saturation, **options))
+    p = plan(image, kernel, method=method, saturation=saturation, censored=censored, **options)
+    return restore(image, p, censored)
 
 
-def wiener(image, kernel, *, noise_sigma=None, prior="natural", regularization=None,
-           saturation=None, saturation_passes=3):
+def wiener(
+    image,
+    kernel,
+    *,
+    noise_sigma=None,
+    prior="natural",
+    regularization=None,
+    saturation=None,
+    saturation_passes=3,
+    kernel_samples=None,
+):
     """Wiener deconvolution with a natural-image prior (Sec. 4.3, [24]).
 
     ``X = K* Y / (|K|^2 + lam |D|^2)`` per channel: the Wiener filter for white noise
@@ -659,6 +746,9 @@ def wiener(image, kernel, *, noise_sigma=None, prior="natural", regularization=N
         ``lam`` directly; by default ``sigma^2 / s2``, with ``s2`` fitted to the
         observed gradient energy (``mean|grad y|^2 = s2 sum k^2 + 4 sigma^2``).
         Floored at 1e-6.
+    kernel_samples : array (n, kh, kw), optional
+        The blur at n depths (e.g. a focal stack's per-depth kernels); their spread
+        around ``kernel`` enters the denominator (:func:`kernel_variance`).
     saturation : float, optional
         Saturated pixels are censored data: they are filled with
         ``max(k * x_hat, y)`` from the current estimate and the Wiener solve is
@@ -669,13 +759,22 @@ def wiener(image, kernel, *, noise_sigma=None, prior="natural", regularization=N
     The frame is reflected over the filter's support radius (:func:`filter_depth`)
     and faded to its mean beyond it before the FFT, and cropped after.
     """
-    return deconvolve(image, kernel, method="wiener", saturation=saturation,
-                      noise_sigma=noise_sigma, prior=prior, regularization=regularization,
-                      saturation_passes=saturation_passes)
+    return deconvolve(
+        image,
+        kernel,
+        method="wiener",
+        saturation=saturation,
+        noise_sigma=noise_sigma,
+        prior=prior,
+        regularization=regularization,
+        saturation_passes=saturation_passes,
+        kernel_samples=kernel_samples,
+    )
 
 
-def richardson_lucy(image, kernel, *, iterations=30, damping=None, noise_sigma=None,
-                    saturation=None):
+def richardson_lucy(
+    image, kernel, *, iterations=30, damping=None, noise_sigma=None, saturation=None
+):
     """Richardson-Lucy deconvolution [24] with masked data and unknown boundaries.
 
     ``x <- x K^T(M (y + b) / (K x + b)) / K^T M`` on a domain one kernel radius larger
@@ -695,12 +794,28 @@ def richardson_lucy(image, kernel, *, iterations=30, damping=None, noise_sigma=N
     saturation : float, optional
         Pixels ``>= saturation`` are left out of the data term.
     """
-    return deconvolve(image, kernel, method="rl", saturation=saturation,
-                      noise_sigma=noise_sigma, iterations=iterations, damping=damping)
+    return deconvolve(
+        image,
+        kernel,
+        method="rl",
+        saturation=saturation,
+        noise_sigma=noise_sigma,
+        iterations=iterations,
+        damping=damping,
+    )
 
 
-def sparse(image, kernel, *, alpha=0.8, weight=0.2, iterations=50, rho=(3e-3, 0.3),
-           noise_sigma=None, saturation=None):
+def sparse(
+    image,
+    kernel,
+    *,
+    alpha=0.8,
+    weight=0.2,
+    iterations=50,
+    rho=(3e-3, 0.3),
+    noise_sigma=None,
+    saturation=None,
+):
     """Edge-preserving deconvolution with a hyper-Laplacian gradient prior.
 
     Minimises ``|M (k*x - y)|^2 / 2 + mu sum_i (|dx_i|^alpha + |dy_i|^alpha)`` (Krishnan
@@ -721,6 +836,14 @@ def sparse(image, kernel, *, alpha=0.8, weight=0.2, iterations=50, rho=(3e-3, 0.
     rho : (float, float)
         First and last ADMM penalty.
     """
-    return deconvolve(image, kernel, method="sparse", saturation=saturation,
-                      noise_sigma=noise_sigma, alpha=alpha, weight=weight,
-                      iterations=iterations, rho=rho)
+    return deconvolve(
+        image,
+        kernel,
+        method="sparse",
+        saturation=saturation,
+        noise_sigma=noise_sigma,
+        alpha=alpha,
+        weight=weight,
+        iterations=iterations,
+        rho=rho,
+    )

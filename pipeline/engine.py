@@ -27,7 +27,7 @@ import numpy as np
 
 from pipeline import align, defocus, optics, psf
 from pipeline.errors import InputError
-from pipeline.io import read_exif, read_frame, write_image, write_json
+from pipeline.io import read_exif, read_frame, read_preview, write_image, write_json
 from pipeline.motion import constant_speed
 from pipeline.profiles import Lens, load_lens
 from pipeline.stack import Stack, check_frames, image_distances_mm, load_stack
@@ -176,8 +176,8 @@ def stack_kernel(
     lens: Lens | None,
     absolute: bool,
     blur_span_px: float | None,
-) -> tuple[np.ndarray, dict]:
-    """The IPSF of the weighted average (Sec. 9) and a summary for the sidecar.
+) -> tuple[np.ndarray, np.ndarray, dict]:
+    """The IPSF of the weighted average (Sec. 9), per-depth samples of it, and a summary.
 
     With a lens and absolute image distances, a point focused at ``v`` is blurred
     in frame ``i`` by ``a |v - p_i| / v`` (Eq. 2); the stack-average kernel is
@@ -217,27 +217,25 @@ def stack_kernel(
             kernel, summary["source"] = analytic, "analytic-eq6"
     spread = [psf.dissimilarity(k, kernel) for k in per_position]
     summary["depth_invariance_eq8"] = {"mean": float(np.mean(spread)), "max": float(np.max(spread))}
-    return kernel, summary
+    return kernel, per_position[::4], summary
 
 
 # ----------------------------------------------------------------------------- previews
-def _preview(frame: np.ndarray, side: int) -> np.ndarray:
-    grey = frame.mean(axis=-1) if frame.ndim == 3 else frame
-    scale = side / max(grey.shape)
-    size = (max(1, round(grey.shape[1] * scale)), max(1, round(grey.shape[0] * scale)))
-    return cv2.resize(grey.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+def read_previews(files: Sequence[Path], max_side_px: int) -> list[np.ndarray]:
+    """Reduced grey copies of every frame, decoded in parallel (one cheap decode each)."""
+    return list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
 
 
-def _aligned_previews(stack: Stack, alignments, shape) -> tuple[list[np.ndarray], float]:
-    """Grey, aligned, reduced copies for the defocus fit, and their downscale factor."""
-    factor = max(shape[:2]) / PREVIEW_SIDE_PX
-    reduce = np.diag([1 / factor, 1 / factor, 1.0])
-    previews = []
-    for i, alignment in enumerate(alignments):
-        small = _preview(stack.read(i), PREVIEW_SIDE_PX)
-        h = reduce @ alignment.homography @ np.linalg.inv(reduce)
-        previews.append(align.warp(small, h, small.shape))
-    return previews, factor
+def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
+    """Aligned copies at the defocus-fit resolution, and their downscale factor."""
+    factor = max(full_shape[:2]) / PREVIEW_SIDE_PX
+    small = []
+    for preview, alignment in zip(previews, alignments):
+        size = (max(1, round(full_shape[1] / factor)), max(1, round(full_shape[0] / factor)))
+        reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
+        h = align.rescale_homography(alignment.homography, full_shape[:2], reduced.shape)
+        small.append(align.warp(reduced, h, reduced.shape))
+    return small, factor
 
 
 # ----------------------------------------------------------------------------- main job
@@ -271,7 +269,13 @@ def process_stack(
     progress("align", 0, n)
 
     t0 = time.perf_counter()
-    alignments = _align(stack, options, positions, absolute, lens, shape, progress)
+    needs_fit = not (lens is not None and absolute) and options.blur_span_px is None
+    previews = None
+    if options.align == "estimate" or needs_fit:
+        previews = read_previews(stack.files, options.align_max_side_px)
+        progress("align", n // 2, n)
+    alignments = _align(stack, options, positions, absolute, previews, shape)
+    progress("align", n, n)
     timings["align"] = time.perf_counter() - t0
 
     positions_source = stack.positions_source or "stack.toml"
@@ -282,13 +286,13 @@ def process_stack(
 
     t0 = time.perf_counter()
     blur_span = options.blur_span_px
-    if not (lens is not None and absolute) and blur_span is None:
+    if needs_fit:
         if n < 2 or np.ptp(positions) == 0:
             raise InputError(f"{stack.base_dir}: one focus position only: nothing to sweep")
-        previews, factor = _aligned_previews(stack, alignments, shape)
-        blur_span = defocus.estimate_blur_span(previews, positions, downscale=factor)
+        small, factor = _blur_fit_previews(previews, alignments, shape)
+        blur_span = defocus.estimate_blur_span(small, positions, downscale=factor)
         log.info("estimated blur span: %.1f px across the stack", blur_span)
-    kernel, kernel_summary = stack_kernel(
+    kernel, kernel_samples, kernel_summary = stack_kernel(
         positions, weights, lens=lens, absolute=absolute, blur_span_px=blur_span
     )
     timings["kernel"] = time.perf_counter() - t0
@@ -307,7 +311,7 @@ def process_stack(
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    result = restore_image(average, kernel, options, clipped=clipped)
+    result = restore_image(average, kernel, options, clipped=clipped, kernel_samples=kernel_samples)
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])
@@ -347,7 +351,8 @@ def check_output(output: Path) -> None:
         raise InputError(f"output {output}: use a .tif, .png or .jpg file name")
 
 
-def _align(stack, options, positions, absolute, lens, shape, progress):
+def _align(stack, options, positions, absolute, previews, shape):
+    """Per-frame homographies to the middle frame (Sec. 9), at full resolution."""
     n = len(stack)
     if options.align == "none":
         return align.analytic_alignment(np.ones(n), shape)  # identities
@@ -358,23 +363,13 @@ def _align(stack, options, positions, absolute, lens, shape, progress):
                 "(image or focus distances in stack.toml); use --align estimate"
             )
         return align.analytic_alignment(positions, shape)
-    done = [0]
-
-    def loader(i):
-        def load():
-            frame = stack.read(i)
-            done[0] += 1
-            progress("align", done[0], n)
-            return frame
-
-        return load
-
-    alignments = align.estimate_alignment(
-        [loader(i) for i in range(n)], max_side_px=options.align_max_side_px
-    )
-    for i, a in enumerate(alignments):
+    estimated = align.estimate_alignment(previews, max_side_px=options.align_max_side_px)
+    alignments = []
+    for path, a in zip(stack.files, estimated):
         if not a.ok:
-            log.warning("frame %s: alignment fell back (%s)", stack.files[i].name, a.message)
+            log.warning("frame %s: alignment fell back (%s)", path.name, a.message)
+        h = align.rescale_homography(a.homography, previews[0].shape, shape[:2])
+        alignments.append(dataclasses.replace(a, homography=h))
     return alignments
 
 
@@ -383,13 +378,18 @@ def clipped_pixels(image: np.ndarray) -> np.ndarray:
     return np.any(image >= SATURATION, axis=-1) if image.ndim == 3 else image >= SATURATION
 
 
-def restore_image(image, kernel, options: StackOptions, *, clipped=None) -> np.ndarray:
-    """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2)."""
+def restore_image(
+    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None
+) -> np.ndarray:
+    """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
+
+    ``kernel_samples`` (the blur at several depths) makes Wiener robust to the
+    residual depth dependence of the IPSF (:func:`pipeline.deconvolve.kernel_variance`).
+    """
     clipped = clipped_pixels(image) if clipped is None else clipped
-    censored = image.copy()
-    censored[clipped] = np.maximum(censored[clipped], 1.0)  # clipped in any frame: no data
-    result = deconvolve_tiled(
-        censored, kernel, method=options.method, tile_px=options.tile_px, saturation=1.0
+    extra = {"kernel_samples": kernel_samples} if options.method == "wiener" else {}
+    result = deconvolve_tiled(  # clipped in any frame: at least the observed value
+        image, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra
     )
     if not np.all(np.isfinite(result)):
         raise InputError("deconvolution produced non-finite values; try --method rl")

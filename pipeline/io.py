@@ -214,6 +214,43 @@ def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
     return _read_codec(p, kind, transfer or "srgb")
 
 
+def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
+    """A reduced grey copy (float32 linear light, longest side ``max_side_px``) of a frame.
+
+    JPEGs are decoded at 1/2, 1/4 or 1/8 scale in the DCT domain (much cheaper than
+    a full decode); other formats are decoded fully and reduced with area
+    averaging. The geometry is that of ``cv2.resize`` of the full frame.
+    """
+    p = _existing(path)
+    if max_side_px < 1:
+        raise InputError(f"max_side_px must be >= 1, got {max_side_px!r}")
+    info = frame_info(p)
+    full_side = max(info.rows, info.cols)
+    image = None
+    if _kind(p) == "jpeg" and full_side > max_side_px:
+        factor = max((r for r in (1, 2, 4, 8) if full_side / r >= max_side_px), default=1)
+        flags = {
+            1: cv2.IMREAD_COLOR,
+            2: cv2.IMREAD_REDUCED_COLOR_2,
+            4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8,
+        }[factor]
+        data = p.read_bytes()
+        _jpeg_structure(data, p)
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+        if decoded is None:
+            raise InputError(f"{p}: OpenCV cannot decode it (corrupt JPEG data)")
+        image = _decode_codes(_to_rgb(decoded, p, bgr=True), "srgb", p)
+    if image is None:
+        image = read_frame(p)
+    grey = image.mean(axis=-1, dtype=np.float32) if image.ndim == 3 else image
+    scale = min(1.0, max_side_px / full_side)
+    size = (max(1, round(info.cols * scale)), max(1, round(info.rows * scale)))
+    if grey.shape[::-1] != size:
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(grey, dtype=np.float32)
+
+
 def _raw_error(path: Path, err: Exception) -> InputError:
     detail = err.args[0] if err.args else ""
     if isinstance(detail, bytes):

@@ -28,7 +28,9 @@ from pipeline.stack import Stack, sweep_profile
 VIDEO_EXTENSIONS = (".mp4", ".avi", ".mov", ".mkv", ".m4v")
 
 
-def sweep_kernel(lens: Lens, profile: Profile, *, depths: int = 9) -> tuple[np.ndarray, dict]:
+def sweep_kernel(
+    lens: Lens, profile: Profile, *, depths: int = 9
+) -> tuple[np.ndarray, np.ndarray, dict]:
     """IPSF of a sweep averaged over depths spread uniformly in image distance over its range.
 
     Each depth's kernel is :func:`pipeline.psf.integrated_psf` (Eq. 5, exact for the
@@ -44,12 +46,16 @@ def sweep_kernel(lens: Lens, profile: Profile, *, depths: int = 9) -> tuple[np.n
     kernel = np.mean(kernels, axis=0)
     kernel /= kernel.sum()
     spread = [psf.dissimilarity(k, kernel) for k in kernels]
-    return kernel, {
-        "size": int(size),
-        "source": "ipsf-depth-average",
-        "depths_mm": [d if np.isfinite(d) else "inf" for d in u],
-        "depth_invariance_eq8": {"mean": float(np.mean(spread)), "max": float(np.max(spread))},
-    }
+    return (
+        kernel,
+        np.array(kernels),
+        {
+            "size": int(size),
+            "source": "ipsf-depth-average",
+            "depths_mm": [d if np.isfinite(d) else "inf" for d in u],
+            "depth_invariance_eq8": {"mean": float(np.mean(spread)), "max": float(np.max(spread))},
+        },
+    )
 
 
 def profile_from_range(lens: Lens, near_mm: float, far_mm: float, exposure_s: float) -> Profile:
@@ -82,13 +88,13 @@ def process_sweep_image(
     """Deconvolve one sweep capture; writes ``output`` and ``output.json``."""
     check_output(output)
     start = time.perf_counter()
-    kernel, summary = kernel_info or sweep_kernel(lens, profile)
+    kernel, samples, summary = kernel_info or sweep_kernel(lens, profile)
     timings = {}
     t0 = time.perf_counter()
     image = read_frame(path)
     timings["read"] = time.perf_counter() - t0
     t0 = time.perf_counter()
-    result = restore_image(image, kernel, options)
+    result = restore_image(image, kernel, options, kernel_samples=samples)
     timings["deconvolve"] = time.perf_counter() - t0
     sidecar = {
         "version": 1,
@@ -135,7 +141,7 @@ def process_sweep_video(
     if not capture.isOpened():
         raise InputError(f"{path}: cannot open it as a video")
     fps = capture.get(cv2.CAP_PROP_FPS) or 25.0
-    kernel, _ = sweep_kernel(lens, profile)
+    kernel, samples, _ = sweep_kernel(lens, profile)
     tmp = output.with_name(f".{output.stem}.partial{output.suffix}")
     writer = None
     count = 0
@@ -150,7 +156,10 @@ def process_sweep_video(
             if not frames:
                 break
             restored = dask.compute(
-                *[dask.delayed(restore_image)(f, kernel, options) for f in frames]
+                *[
+                    dask.delayed(restore_image)(f, kernel, options, kernel_samples=samples)
+                    for f in frames
+                ]
             )
             for image in restored:
                 encoded = np.round(linear_to_srgb(np.clip(image, 0, 1)) * 255).astype(np.uint8)

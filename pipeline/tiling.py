@@ -36,8 +36,16 @@ from pipeline import deconvolve as dc
 from pipeline.errors import InputError
 
 
-def deconvolve_tiled(image, kernel, *, method: str = "wiener", tile_px: int = 1024,
-                     saturation=None, **options):
+def deconvolve_tiled(
+    image,
+    kernel,
+    *,
+    method: str = "wiener",
+    tile_px: int = 1024,
+    saturation=None,
+    censored=None,
+    **options,
+):
     """:func:`pipeline.deconvolve.deconvolve` over overlapping tiles with dask.
 
     Parameters
@@ -48,8 +56,8 @@ def deconvolve_tiled(image, kernel, *, method: str = "wiener", tile_px: int = 10
         dask image is computed once for them (persist it first if that is costly).
     kernel : array
         PSF/IPSF (odd sides, centred, non-negative, sums to 1).
-    method, saturation, **options
-        As :func:`pipeline.deconvolve.deconvolve`.
+    method, saturation, censored, **options
+        As :func:`pipeline.deconvolve.deconvolve` (``censored`` is tiled with the image).
     tile_px : int
         Tile side for numpy input; the work per tile is ``(tile_px + 2 depth)^2``.
 
@@ -63,7 +71,7 @@ def deconvolve_tiled(image, kernel, *, method: str = "wiener", tile_px: int = 10
         raise InputError(f"tile_px must be >= 1, got {tile_px!r}")
     lazy = isinstance(image, da.Array)
     whole = np.asarray(image.compute() if lazy else image)
-    p = dc.plan(whole, kernel, method=method, saturation=saturation, **options)
+    p = dc.plan(whole, kernel, method=method, saturation=saturation, censored=censored, **options)
     dtype = np.float32 if whole.dtype == np.float32 else np.float64
     arr = image if lazy else da.from_array(whole, chunks=(tile_px, tile_px, *whole.shape[2:]))
     arr = arr.astype(dtype)
@@ -76,8 +84,35 @@ def deconvolve_tiled(image, kernel, *, method: str = "wiener", tile_px: int = 10
             depth[axis] = 0
         else:
             depth[axis] = p.depth
-    out = da.map_overlap(
-        partial(dc.restore, p=p), arr, depth=depth, boundary="none", trim=True, dtype=dtype,
-        meta=np.empty((0,) * arr.ndim, dtype=dtype),
-    )
+    meta = np.empty((0,) * arr.ndim, dtype=dtype)
+    if censored is None:
+        out = da.map_overlap(
+            partial(dc.restore, p=p),
+            arr,
+            depth=depth,
+            boundary="none",
+            trim=True,
+            dtype=dtype,
+            meta=meta,
+        )
+    else:
+        mask = np.asarray(censored, dtype=bool)
+        mask = mask[..., np.newaxis] if arr.ndim == 3 else mask
+        mask_arr = da.from_array(mask, chunks=arr.chunks[:2] + ((1,) if arr.ndim == 3 else ()))
+        out = da.map_overlap(
+            _restore_censored,
+            arr,
+            mask_arr,
+            p=p,
+            depth=depth,
+            boundary="none",
+            trim=True,
+            dtype=dtype,
+            meta=meta,
+            align_arrays=False,
+        )
     return out if lazy else out.compute()
+
+
+def _restore_censored(y, mask, p):
+    return dc.restore(y, p, mask[..., 0] if mask.ndim == 3 else mask)

@@ -1,0 +1,239 @@
+"""The main job (Sec. 9) end to end on synthetic stacks rendered independently of the engine."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+from scipy.signal import fftconvolve
+from skimage import data
+
+from pipeline import optics, psf
+from pipeline.cli import main
+from pipeline.engine import StackOptions, process_stack, scheduler_context
+from pipeline.io import read_frame, srgb_to_linear, write_image
+from pipeline.profiles import load_lens
+
+LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
+
+
+def psnr(a, b):
+    return 10 * np.log10(1.0 / np.mean((np.clip(a, 0, 1) - b) ** 2))
+
+
+def blur(image, kernel):
+    h = kernel.shape[0] // 2
+    padded = np.pad(image, ((h, h), (h, h), (0, 0)), mode="reflect")
+    return np.stack(
+        [fftconvolve(padded[..., c], kernel, mode="valid") for c in range(image.shape[2])], -1
+    )
+
+
+def make_stack(folder, sharp, depths_mm, positions_mm, *, noise=0.0, seed=0, lens=LENS):
+    """Frames of a scene whose columns are split into planes at ``depths_mm`` (Eqs. 2-3)."""
+    profile = load_lens(lens)
+    rng = np.random.default_rng(seed)
+    bands = np.array_split(np.arange(sharp.shape[1]), len(depths_mm))
+    lines = [f'lens = "{lens}"', 'kind = "focal-stack"', ""]
+    for i, p in enumerate(positions_mm):
+        frame = np.zeros_like(sharp)
+        for depth, cols in zip(depths_mm, bands):
+            mask = np.zeros(sharp.shape[:2] + (1,), np.float32)
+            mask[:, cols] = 1
+            frame += blur(sharp * mask, psf.lens_psf(profile, depth, p))
+        frame = frame + rng.normal(0, noise, frame.shape) if noise else frame
+        name = f"frame_{i:02d}.tif"
+        write_image(folder / name, np.clip(frame, 0, None).astype(np.float32), encoding="float32")
+        lines += ["[[frames]]", f'file = "{name}"', f"image_distance_mm = {p}", ""]
+    (folder / "stack.toml").write_text("\n".join(lines))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def sharp():
+    return srgb_to_linear(data.astronaut()[40:296, 130:386].astype(np.float32) / 255)
+
+
+def positions_for(near_mm, far_mm, n):
+    lo, hi = optics.image_distance(12.5, far_mm), optics.image_distance(12.5, near_mm)
+    return np.linspace(lo, hi, n)
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_result_beats_every_frame(tmp_path, sharp, noise):
+    stack = make_stack(tmp_path, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 9),
+                       noise=noise)
+    best_frame = max(psnr(read_frame(f), sharp) for f in sorted(stack.glob("frame_*.tif")))
+    scores = {}
+    for method in ("wiener", "rl", "sparse"):
+        out = tmp_path / f"{method}.tif"
+        code = main(["-q", "stack", str(stack), "-o", str(out), "--float", "--method", method,
+                     "--align", "none"])
+        assert code == 0
+        scores[method] = psnr(read_frame(out), sharp)
+        assert scores[method] > best_frame + 1.0, (method, scores, best_frame)
+    if noise:
+        assert scores["sparse"] > scores["wiener"]
+
+
+COARSE_LENS = """focal_length_mm = 12.5
+f_number = 1.4
+[sensor]
+pixel_pitch_um = 25.0
+width_px = 256
+height_px = 256
+"""
+
+
+def test_analytic_alignment_undoes_breathing(tmp_path, sharp):
+    """Frames magnified by p_i / p_ref (Fig. 1) are registered by --align analytic.
+
+    A macro-like sweep (150-2500 mm) breathes by +-4%; 25 um pixels keep the blur small.
+    """
+    lens = tmp_path / "coarse.toml"
+    lens.write_text(COARSE_LENS)
+    positions = positions_for(150, 2500, 7)
+    stack = make_stack(tmp_path, sharp, [400.0], positions, lens=str(lens))
+    import cv2
+
+    ref = positions[len(positions) // 2]
+    for i, p in enumerate(positions):
+        path = tmp_path / f"frame_{i:02d}.tif"
+        frame = read_frame(path)
+        s = p / ref
+        centre = ((frame.shape[1] - 1) / 2, (frame.shape[0] - 1) / 2)
+        m = np.array([[s, 0, centre[0] * (1 - s)], [0, s, centre[1] * (1 - s)]])
+        warped = cv2.warpAffine(frame, m, frame.shape[1::-1], flags=cv2.INTER_LINEAR,
+                                borderMode=cv2.BORDER_REPLICATE)
+        write_image(path, warped, encoding="float32")
+    out_none, out_analytic = tmp_path / "none.tif", tmp_path / "analytic.tif"
+    assert main(["-q", "stack", str(stack), "-o", str(out_none), "--float", "--align", "none"]) == 0
+    assert main(["-q", "stack", str(stack), "-o", str(out_analytic), "--float",
+                 "--align", "analytic"]) == 0
+    # Breathing moves pixels by up to ~1.4 px at the edge: compare on the outer ring.
+    yy, xx = np.mgrid[:256, :256]
+    radius = np.hypot(yy - 127.5, xx - 127.5)
+    ring = (radius > 80) & (radius < 115)
+    err_none = np.mean(np.abs(read_frame(out_none) - sharp)[ring])
+    err_analytic = np.mean(np.abs(read_frame(out_analytic) - sharp)[ring])
+    assert err_analytic < 0.8 * err_none, (err_analytic, err_none)
+
+
+def test_sidecar_records_weights_and_kernel(tmp_path, sharp):
+    positions = positions_for(450, 2500, 6)
+    stack = make_stack(tmp_path, sharp, [900.0], positions)
+    out = tmp_path / "out.png"
+    with scheduler_context(threads=2):
+        result = process_stack([stack], out, StackOptions(align="none"))
+    side = result.sidecar
+    weights = [f["weight"] for f in side["frames"]]
+    assert sum(weights) == pytest.approx(1.0)
+    assert weights[0] == pytest.approx(weights[1] / 2)  # Sec. 9: half cells at the ends
+    assert [f["image_distance_mm"] for f in side["frames"]] == pytest.approx(list(positions))
+    assert side["kernel"]["source"] in ("stack-average", "analytic-eq6")
+    assert set(side["timings_s"]) >= {"align", "accumulate", "deconvolve", "total"}
+    assert (tmp_path / "out.png.json").is_file()
+
+
+def peak_memory(folder, n_frames, shape=(384, 384, 3)):
+    rng = np.random.default_rng(1)
+    base = rng.random(shape, dtype=np.float32)
+    for i in range(n_frames):
+        write_image(folder / f"f_{i:03d}.tif", base * (0.5 + 0.5 * i / n_frames), encoding="float32")
+    tracemalloc.start()
+    with scheduler_context(threads=2):
+        process_stack([str(folder / "f_*.tif")], folder / "out.tif",
+                      StackOptions(align="none", blur_span_px=12.0, encoding="float32"))
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return peak
+
+
+def test_peak_memory_is_flat_in_the_number_of_frames(tmp_path):
+    (tmp_path / "a").mkdir()
+    (tmp_path / "b").mkdir()
+    peak8 = peak_memory(tmp_path / "a", 8)
+    peak32 = peak_memory(tmp_path / "b", 32)
+    frame_bytes = 384 * 384 * 3 * 4
+    assert peak32 < peak8 + 3 * frame_bytes, (peak8 / frame_bytes, peak32 / frame_bytes)
+
+
+# ----------------------------------------------------------------------------- bad input
+def run_cli(args, capsys):
+    code = main(args)
+    err = capsys.readouterr().err.strip()
+    return code, err
+
+
+def assert_clean_failure(code, err, out, *needles):
+    assert code == 2
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    for needle in needles:
+        assert needle in err, err
+    assert not out.exists()
+    assert not out.with_name(out.name + ".json").exists()
+    assert not [p for p in out.parent.iterdir() if p.name.startswith(".")]
+
+
+@pytest.fixture
+def good_stack(tmp_path, sharp):
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    return make_stack(folder, sharp[:96, :96], [800.0], positions_for(450, 2500, 3))
+
+
+def test_empty_directory(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    out = tmp_path / "out.tif"
+    code, err = run_cli(["stack", str(tmp_path / "empty"), "-o", str(out)], capsys)
+    assert_clean_failure(code, err, out, "no image files")
+
+
+@pytest.mark.parametrize("source", ["focusstack-pcb/pcb7/pcb_001.jpg", "raw-dng-canon550d/colorchart.dng"])
+def test_truncated_files(tmp_path, capsys, shared_data, source):
+    data_bytes = (shared_data / source).read_bytes()
+    folder = tmp_path / "s"
+    folder.mkdir()
+    suffix = source.rsplit(".", 1)[1]
+    (folder / f"a.{suffix}").write_bytes(data_bytes)
+    (folder / f"b.{suffix}").write_bytes(data_bytes[: len(data_bytes) // 2])
+    out = tmp_path / "out.tif"
+    code, err = run_cli(["stack", str(folder), "-o", str(out), "--blur-span-px", "5"], capsys)
+    assert_clean_failure(code, err, out, f"b.{suffix}")
+
+
+def test_frames_of_different_sizes(tmp_path, capsys):
+    folder = tmp_path / "s"
+    folder.mkdir()
+    write_image(folder / "a.tif", np.zeros((32, 32), np.float32), encoding="float32")
+    write_image(folder / "b.tif", np.zeros((32, 40), np.float32), encoding="float32")
+    out = tmp_path / "out.tif"
+    code, err = run_cli(["stack", str(folder), "-o", str(out)], capsys)
+    assert_clean_failure(code, err, out, "b.tif")
+
+
+@pytest.mark.parametrize(
+    ("edit", "needle"),
+    [
+        (lambda t: t.replace('file = "frame_01.tif"', 'file = "missing.tif"'), "missing.tif"),
+        (lambda t: t.replace("image_distance_mm = ", "focus_distance_mm = 900.0\nimage_distance_mm = ", 1), "frame"),
+        (lambda t: t.replace(t.split("image_distance_mm = ")[1].split("\n")[0], "x", 1).replace("image_distance_mm = x", "focus_distance_mm = 10.0"), "focal length"),
+        (lambda t: t.replace(LENS, "no-such-lens"), "no-such-lens"),
+    ],
+    ids=["missing-file", "two-position-kinds", "focus-inside-f", "unknown-lens"],
+)
+def test_bad_sidecars(good_stack, tmp_path, capsys, edit, needle):
+    sidecar = good_stack / "stack.toml"
+    sidecar.write_text(edit(sidecar.read_text()))
+    out = tmp_path / "out.tif"
+    code, err = run_cli(["stack", str(good_stack), "-o", str(out)], capsys)
+    assert_clean_failure(code, err, out, needle)
+
+
+def test_existing_output_survives_a_failed_run(good_stack, tmp_path, capsys):
+    out = tmp_path / "out.tif"
+    assert main(["-q", "stack", str(good_stack), "-o", str(out), "--align", "none"]) == 0
+    before = out.read_bytes()
+    (good_stack / "frame_01.tif").write_bytes(b"not a tiff")
+    code, err = run_cli(["stack", str(good_stack), "-o", str(out), "--align", "none"], capsys)
+    assert code == 2 and "frame_01.tif" in err
+    assert out.read_bytes() == before
