@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
+from scipy import signal
 
 from pipeline.errors import InputError
 
@@ -260,28 +260,25 @@ def kernel_variance(samples, kernel):
     With a depth-dependent blur ``K_u`` of mean ``K`` and variance ``V``, the linear
     estimate minimising the expected error is ``K* / (|K|^2 + V + lam |D|^2)``:
     frequencies where the IPSF is not depth-invariant (Eq. 8) are not amplified.
-    ``V`` is computed on a small grid (the kernels are compact, so it is smooth)
-    and returned as a function of an rfft grid shape that interpolates it there.
+    ``|K_u - K|^2`` is the spectrum of the autocorrelation of ``k_u - k``, a compact
+    array, so ``V`` is exact on any grid at the cost of one FFT. Returns a function
+    of an rfft grid shape giving ``V`` there.
     """
     samples = np.asarray(samples, dtype=np.float64)
-    if samples.ndim != 3 or samples.shape[1:] != np.shape(kernel):
+    kernel = np.asarray(kernel, dtype=np.float64)
+    if samples.ndim != 3 or samples.shape[1:] != kernel.shape:
         raise InputError(
-            f"kernel_samples must have shape (n, {np.shape(kernel)[0]}, {np.shape(kernel)[1]}), "
+            f"kernel_samples must have shape (n, {kernel.shape[0]}, {kernel.shape[1]}), "
             f"got {samples.shape}"
         )
-    n = sfft.next_fast_len(max(64, 4 * max(samples.shape[1:])))
-    mean_fft = _kernel_fft(np.asarray(kernel, np.float64), (n, n), np.float64)
-    var = np.mean(
-        [np.abs(_kernel_fft(k, (n, n), np.float64) - mean_fft) ** 2 for k in samples], axis=0
+    diffs = samples - kernel
+    autocorrelation = np.mean(
+        [signal.fftconvolve(d, d[::-1, ::-1], mode="full") for d in diffs], axis=0
     )
 
     def on_grid(rshape: tuple[int, int]) -> np.ndarray:
-        rows, half_cols = rshape
-        cols = 2 * (half_cols - 1)
-        fy = sfft.fftfreq(rows)[:, np.newaxis] * n  # in units of the small grid's bins
-        fx = sfft.rfftfreq(cols)[np.newaxis, :] * n
-        coords = np.array(np.broadcast_arrays(np.mod(fy, n), fx))
-        return ndimage.map_coordinates(var, coords, order=1, mode="grid-wrap")
+        shape = (rshape[0], 2 * (rshape[1] - 1))  # grids here are even (see _fast_len)
+        return np.abs(_kernel_fft(autocorrelation, shape, np.float64))
 
     return on_grid
 
@@ -305,7 +302,7 @@ def filter_depth(kernel: np.ndarray, transfer, *, limit: int = 4096) -> int:
     grid reaches ``limit``): input farther away than that changes the output by
     less than 1e-5 of the data range.
     """
-    n = sfft.next_fast_len(max(8 * max(kernel.shape), 256), real=True)
+    n = _fast_len(max(8 * max(kernel.shape), 256))
     while True:
         shape = (n, n)
         h = sfft.irfft2(
@@ -318,7 +315,7 @@ def filter_depth(kernel: np.ndarray, transfer, *, limit: int = 4096) -> int:
         depth = _tail_depth(h)
         if depth < n // 4 or n >= limit:
             return min(depth, n // 2)
-        n = sfft.next_fast_len(2 * n, real=True)
+        n = _fast_len(2 * n)
 
 
 def _frame_depth(y: np.ndarray, kernel: np.ndarray, transfer) -> int:
@@ -328,8 +325,13 @@ def _frame_depth(y: np.ndarray, kernel: np.ndarray, transfer) -> int:
     return min(filter_depth(kernel, transfer, limit=2 * side), side)
 
 
+def _fast_len(n: int) -> int:
+    """A fast, even FFT length >= n (even, so an rfft grid determines its full shape)."""
+    return 2 * sfft.next_fast_len((int(n) + 1) // 2, real=True)
+
+
 def _fast_shape(shape: tuple[int, int]) -> tuple[int, int]:
-    return tuple(sfft.next_fast_len(int(s), real=True) for s in shape)
+    return tuple(_fast_len(s) for s in shape)
 
 
 # ----------------------------------------------------------------------------- Wiener

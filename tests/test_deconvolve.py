@@ -236,3 +236,26 @@ def test_no_ringing_from_frame_edges(camera, noisy):
         border = np.ones(err.shape, bool)
         border[16:-16, 16:-16] = False
         assert np.sqrt(err[border].mean()) < 1.5 * np.sqrt(err[~border].mean()), method
+
+
+def test_kernel_variance_equals_direct_spectral_variance():
+    """V from autocorrelations == mean |K_u - K|^2 computed with FFTs on the same grid."""
+    rng = np.random.default_rng(3)
+    samples = rng.random((5, 9, 9))
+    samples /= samples.sum(axis=(1, 2), keepdims=True)
+    mean = samples.mean(axis=0)
+    shape = (64, 48)
+    variance = dc.kernel_variance(samples, mean)((64, 25))
+
+    def centred_rfft(k):
+        grid = np.zeros(shape)
+        grid[:9, :9] = k
+        return np.fft.rfft2(np.roll(grid, (-4, -4), axis=(0, 1)))
+
+    direct = np.mean([np.abs(centred_rfft(k) - centred_rfft(mean)) ** 2 for k in samples], axis=0)
+    assert np.allclose(variance, direct, atol=1e-12)
+
+
+def test_kernel_samples_shape_is_checked():
+    with pytest.raises(InputError, match="kernel_samples"):
+        dc.kernel_variance(np.ones((3, 5, 5)), np.ones((7, 7)))
