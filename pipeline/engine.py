@@ -54,6 +54,7 @@ class StackOptions:
     tile_px: int = 1024
     align_max_side_px: int = 768
     save_kernel: Path | None = None
+    sweep_ends: str = "full"
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -282,7 +283,7 @@ def process_stack(
     if positions is None:
         positions, positions_source = positions_from_scales(np.array([a.scale for a in alignments]))
         absolute = False
-    weights = constant_speed_weights(positions)
+    weights = constant_speed_weights(positions, ends=options.sweep_ends)
 
     t0 = time.perf_counter()
     blur_span = options.blur_span_px

@@ -45,7 +45,7 @@ def edge_points(reference: np.ndarray, *, max_points: int = 6000, seed: int = 0)
     # local maxima along the gradient (non-maximum suppression, 8 directions)
     peaks = magnitude >= ndimage.maximum_filter(magnitude, size=3)
     strong = peaks & (magnitude > np.percentile(magnitude, 97))
-    border = 48
+    border = 28
     strong[:border] = strong[-border:] = False
     strong[:, :border] = strong[:, -border:] = False
     rows, cols = np.nonzero(strong)
@@ -60,7 +60,7 @@ def edge_points(reference: np.ndarray, *, max_points: int = 6000, seed: int = 0)
 
 
 def edge_widths(image: np.ndarray, points: np.ndarray, normals: np.ndarray, *,
-                reach_px: float = 40.0, min_contrast: float = 0.02) -> np.ndarray:
+                reach_px: float = 20.0, min_contrast: float = 0.02) -> np.ndarray:
     """10-90% rise width (px) of ``image`` at each edge point; NaN where too faint."""
     grey = _grey(image)
     t = np.arange(-reach_px, reach_px + 0.25, 0.25)

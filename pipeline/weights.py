@@ -14,7 +14,7 @@ import numpy as np
 from pipeline.errors import InputError
 
 
-def constant_speed_weights(image_distances_mm) -> np.ndarray:
+def constant_speed_weights(image_distances_mm, *, ends: str = "half") -> np.ndarray:
     """Weights (sum 1) that emulate a constant-speed sweep over the frames' range (Sec. 9).
 
     Parameters
@@ -22,15 +22,23 @@ def constant_speed_weights(image_distances_mm) -> np.ndarray:
     image_distances_mm : array_like, shape (n,)
         Each frame's focus position (image distance, or any coordinate linear in
         it); any order, non-uniform spacing and duplicates allowed.
+    ends : {"half", "full"}
+        "half": the sweep runs exactly from the first to the last frame, so the end
+        frames stand for half a spacing. "full": it runs half a spacing beyond them
+        (each frame stands for the interval around it; equal weights for even
+        spacing), which gives points focused at the end frames a kernel closer to
+        the interior ones (Sec. 4.1 notes invariance is worst at the sweep's ends).
 
     Returns
     -------
     ndarray, shape (n,)
         ``w_i`` proportional to the length of ``p`` nearer to ``p_i`` than to any
-        other frame, within ``[p_min, p_max]``; frames at the same position share
+        other frame, within the swept range; frames at the same position share
         their interval equally. A single frame, or all frames at one position,
         get equal weights.
     """
+    if ends not in ("half", "full"):
+        raise InputError(f"ends must be 'half' or 'full', got {ends!r}")
     p = np.asarray(image_distances_mm, dtype=np.float64).ravel()
     if p.size == 0:
         raise InputError("image_distances_mm is empty: a stack needs at least one frame")
@@ -40,9 +48,12 @@ def constant_speed_weights(image_distances_mm) -> np.ndarray:
     if unique.size == 1:
         return np.full(p.size, 1.0 / p.size)
     midpoints = 0.5 * (unique[1:] + unique[:-1])
-    lower = np.concatenate(([unique[0]], midpoints))
-    upper = np.concatenate((midpoints, [unique[-1]]))
-    cell = (upper - lower) / (unique[-1] - unique[0])
+    first, last = unique[0], unique[-1]
+    if ends == "full":
+        first, last = 2 * unique[0] - midpoints[0], 2 * unique[-1] - midpoints[-1]
+    lower = np.concatenate(([first], midpoints))
+    upper = np.concatenate((midpoints, [last]))
+    cell = (upper - lower) / (last - first)
     return cell[inverse] / counts[inverse]
 
 

@@ -211,3 +211,26 @@ def test_dof_errors(ramp_stack, capsys):
 def test_row_offsets_tile_the_sensor():
     y = motion.row_offsets_mm(4, 4.0)
     np.testing.assert_allclose(y, [-1.5, -0.5, 0.5, 1.5])
+
+
+@pytest.mark.parametrize(
+    "p", [[12.5, 12.6, 12.7, 12.8], [12.8, 12.5, 12.55, 12.7], [12.5, 12.5, 12.6, 12.9]]
+)
+def test_full_ends_emulate_a_sweep_half_a_spacing_beyond_the_end_frames(p):
+    """Sample a sweep over [p0 - d0/2, pn + dn/2]; each instant counts for its nearest frame."""
+    w = constant_speed_weights(p, ends="full")
+    q = np.unique(p)
+    lo, hi = q[0] - (q[1] - q[0]) / 2, q[-1] + (q[-1] - q[-2]) / 2
+    times = np.linspace(lo, hi, 200_001)
+    nearest = np.abs(times[:, None] - np.asarray(p)[None, :])
+    owners = nearest == nearest.min(axis=1, keepdims=True)
+    share = (owners / owners.sum(axis=1, keepdims=True)).mean(axis=0)
+    np.testing.assert_allclose(w, share, atol=1e-4)
+    assert w.sum() == pytest.approx(1.0)
+
+
+def test_full_ends_give_equal_weights_for_even_spacing():
+    np.testing.assert_allclose(constant_speed_weights(np.linspace(12.5, 12.9, 7), ends="full"),
+                               np.full(7, 1 / 7))
+    with pytest.raises(InputError, match="ends"):
+        constant_speed_weights([1.0, 2.0], ends="both")
