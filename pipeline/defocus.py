@@ -34,7 +34,14 @@ def _focus_measure(grey: np.ndarray) -> np.ndarray:
 
 
 def _pairs(n: int) -> list[tuple[int, int]]:
-    steps = sorted({1, 2, max(1, n // 4), max(1, n // 3)})
+    """Frame pairs 2+ frames apart (neighbours only for tiny stacks).
+
+    A pixel's sharpest frame is itself blurred by up to ``D dx / 2`` (the point
+    focuses between frames); blur adds roughly in quadrature, so predicting a frame
+    ``k`` steps away underestimates ``D`` by about ``1 / (8 k^2)``: 12% for
+    neighbours, 3% for k = 2.
+    """
+    steps = {1, 2} if n < 4 else {2, 3, max(2, n // 3)}
     return [(i, i + s * d) for i in range(n) for s in steps for d in (-1, 1) if 0 <= i + s * d < n]
 
 

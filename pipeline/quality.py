@@ -59,8 +59,14 @@ def edge_points(reference: np.ndarray, *, max_points: int = 6000, seed: int = 0)
     return np.stack([rows, cols], axis=1).astype(np.float64), normals
 
 
-def edge_widths(image: np.ndarray, points: np.ndarray, normals: np.ndarray, *,
-                reach_px: float = 20.0, min_contrast: float = 0.02) -> np.ndarray:
+def edge_widths(
+    image: np.ndarray,
+    points: np.ndarray,
+    normals: np.ndarray,
+    *,
+    reach_px: float = 20.0,
+    min_contrast: float = 0.02,
+) -> np.ndarray:
     """10-90% rise width (px) of ``image`` at each edge point; NaN where too faint."""
     grey = _grey(image)
     t = np.arange(-reach_px, reach_px + 0.25, 0.25)
@@ -74,7 +80,7 @@ def edge_widths(image: np.ndarray, points: np.ndarray, normals: np.ndarray, *,
     centre = t.size // 2
     widths = np.full(points.shape[0], np.nan)
     for i in np.flatnonzero(np.abs(contrast) > min_contrast * max(float(grey.max()), 1e-12)):
-        row = q[i] if contrast[i] > 0 else q[i]
+        row = q[i]  # normalised by the signed contrast: falling edges rise too
         below = np.flatnonzero(row[:centre] <= 0.1)
         above = np.flatnonzero(row[centre:] >= 0.9)
         if below.size and above.size:
@@ -88,3 +94,39 @@ def edge_width(image: np.ndarray, points: np.ndarray, normals: np.ndarray, **kwa
     if not np.any(np.isfinite(widths)):
         raise InputError("no measurable edges: the image has no contrast at the edge points")
     return float(np.nanmedian(widths))
+
+
+def sharpness_against_frames(result: np.ndarray, aligned_frames: list[np.ndarray]) -> dict:
+    """Median edge widths of a result and of every (aligned) frame, whole and per region.
+
+    Edges are taken from the frames' mean and split into a 3x3 grid of regions.
+    Returns ``result_px``, ``frames_px`` (list), ``best`` (index of the sharpest
+    frame overall), ``result_regions`` and ``best_regions`` (9 medians each, NaN
+    where a region has no edges) and ``regions_sharper`` / ``regions``: in how many
+    regions the result's edges are narrower than the best frame's.
+    """
+    points, normals = edge_points(sum(aligned_frames) / len(aligned_frames))
+    rows, cols = result.shape[:2]
+    region = (points[:, 0] * 3 // rows).astype(int) * 3 + (points[:, 1] * 3 // cols).astype(int)
+
+    def widths(image):
+        w = edge_widths(image, points, normals)
+        medians = [
+            float(np.nanmedian(w[region == r])) if np.isfinite(w[region == r]).any() else np.nan
+            for r in range(9)
+        ]
+        return float(np.nanmedian(w)), medians
+
+    ours, ours_regions = widths(result)
+    per_frame = [widths(frame) for frame in aligned_frames]
+    best = int(np.argmin([w for w, _ in per_frame]))
+    pairs = [(o, b) for o, b in zip(ours_regions, per_frame[best][1]) if np.isfinite(o + b)]
+    return {
+        "result_px": ours,
+        "frames_px": [w for w, _ in per_frame],
+        "best": best,
+        "result_regions": ours_regions,
+        "best_regions": per_frame[best][1],
+        "regions_sharper": sum(o < b for o, b in pairs),
+        "regions": len(pairs),
+    }

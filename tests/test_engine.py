@@ -237,3 +237,18 @@ def test_existing_output_survives_a_failed_run(good_stack, tmp_path, capsys):
     code, err = run_cli(["stack", str(good_stack), "-o", str(out), "--align", "none"], capsys)
     assert code == 2 and "frame_01.tif" in err
     assert out.read_bytes() == before
+
+
+def test_shipped_sample_each_method_beats_the_best_frame(repo_root, tmp_path):
+    """stacks/motorcycle (noisy, rendered with occlusion and breathing): PSNR vs ground truth."""
+    sample = repo_root / "stacks" / "motorcycle"
+    truth = read_frame(sample / "ground_truth.tif")
+    best_frame = max(psnr(read_frame(f), truth) for f in sorted(sample.glob("frame_*.png")))
+    scores = {}
+    with scheduler_context(threads=2):
+        for method in ("wiener", "rl", "sparse"):
+            job = process_stack([sample], tmp_path / f"{method}.tif",
+                                StackOptions(method=method, encoding="float32"))
+            scores[method] = psnr(job.image, truth)
+    assert min(scores.values()) > best_frame + 4.0, (scores, best_frame)
+    assert scores["sparse"] > scores["wiener"], scores
