@@ -14,6 +14,16 @@ import numpy as np
 from pipeline.errors import InputError
 
 
+def _positions(image_distances_mm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    p = np.asarray(image_distances_mm, dtype=np.float64).ravel()
+    if p.size == 0:
+        raise InputError("image_distances_mm is empty: a stack needs at least one frame")
+    if not np.all(np.isfinite(p)):
+        raise InputError(f"image_distances_mm must be finite, got {p.tolist()}")
+    unique, inverse, counts = np.unique(p, return_inverse=True, return_counts=True)
+    return unique, inverse, counts
+
+
 def constant_speed_weights(image_distances_mm, *, ends: str = "half") -> np.ndarray:
     """Weights (sum 1) that emulate a constant-speed sweep over the frames' range (Sec. 9).
 
@@ -39,14 +49,9 @@ def constant_speed_weights(image_distances_mm, *, ends: str = "half") -> np.ndar
     """
     if ends not in ("half", "full"):
         raise InputError(f"ends must be 'half' or 'full', got {ends!r}")
-    p = np.asarray(image_distances_mm, dtype=np.float64).ravel()
-    if p.size == 0:
-        raise InputError("image_distances_mm is empty: a stack needs at least one frame")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"image_distances_mm must be finite, got {p.tolist()}")
-    unique, inverse, counts = np.unique(p, return_inverse=True, return_counts=True)
+    unique, inverse, counts = _positions(image_distances_mm)
     if unique.size == 1:
-        return np.full(p.size, 1.0 / p.size)
+        return np.full(inverse.size, 1.0 / inverse.size)
     midpoints = 0.5 * (unique[1:] + unique[:-1])
     first, last = unique[0], unique[-1]
     if ends == "full":
@@ -63,16 +68,6 @@ def constant_speed_weights(image_distances_mm, *, ends: str = "half") -> np.ndar
 # outside the frames' range, the end frame). A sweep over [lo, hi] at constant
 # speed then weights frame i by the mean of its hat over [lo, hi]; over the
 # whole range that mean is exactly the cell length of constant_speed_weights.
-
-
-def _positions(image_distances_mm) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    p = np.asarray(image_distances_mm, dtype=np.float64).ravel()
-    if p.size == 0:
-        raise InputError("image_distances_mm is empty: a stack needs at least one frame")
-    if not np.all(np.isfinite(p)):
-        raise InputError(f"image_distances_mm must be finite, got {p.tolist()}")
-    unique, inverse, counts = np.unique(p, return_inverse=True, return_counts=True)
-    return unique, inverse, counts
 
 
 def _hat(x: np.ndarray, knots: np.ndarray) -> np.ndarray:

@@ -37,7 +37,7 @@ def make_stack(folder, sharp, depths_mm, positions_mm, *, noise=0.0, seed=0, len
     for i, p in enumerate(positions_mm):
         frame = np.zeros_like(sharp)
         for depth, cols in zip(depths_mm, bands):
-            mask = np.zeros(sharp.shape[:2] + (1,), np.float32)
+            mask = np.zeros((*sharp.shape[:2], 1), np.float32)
             mask[:, cols] = 1
             frame += blur(sharp * mask, psf.lens_psf(profile, depth, p))
         frame = frame + rng.normal(0, noise, frame.shape) if noise else frame
@@ -60,14 +60,27 @@ def positions_for(near_mm, far_mm, n):
 
 @pytest.mark.parametrize("noise", [0.0, 0.01])
 def test_result_beats_every_frame(tmp_path, sharp, noise):
-    stack = make_stack(tmp_path, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 9),
-                       noise=noise)
+    stack = make_stack(
+        tmp_path, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 9), noise=noise
+    )
     best_frame = max(psnr(read_frame(f), sharp) for f in sorted(stack.glob("frame_*.tif")))
     scores = {}
     for method in ("wiener", "rl", "sparse"):
         out = tmp_path / f"{method}.tif"
-        code = main(["-q", "stack", str(stack), "-o", str(out), "--float", "--method", method,
-                     "--align", "none"])
+        code = main(
+            [
+                "-q",
+                "stack",
+                str(stack),
+                "-o",
+                str(out),
+                "--float",
+                "--method",
+                method,
+                "--align",
+                "none",
+            ]
+        )
         assert code == 0
         scores[method] = psnr(read_frame(out), sharp)
         assert scores[method] > best_frame + 1.0, (method, scores, best_frame)
@@ -102,13 +115,16 @@ def test_analytic_alignment_undoes_breathing(tmp_path, sharp):
         s = p / ref
         centre = ((frame.shape[1] - 1) / 2, (frame.shape[0] - 1) / 2)
         m = np.array([[s, 0, centre[0] * (1 - s)], [0, s, centre[1] * (1 - s)]])
-        warped = cv2.warpAffine(frame, m, frame.shape[1::-1], flags=cv2.INTER_LINEAR,
-                                borderMode=cv2.BORDER_REPLICATE)
+        warped = cv2.warpAffine(
+            frame, m, frame.shape[1::-1], flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
         write_image(path, warped, encoding="float32")
     out_none, out_analytic = tmp_path / "none.tif", tmp_path / "analytic.tif"
     assert main(["-q", "stack", str(stack), "-o", str(out_none), "--float", "--align", "none"]) == 0
-    assert main(["-q", "stack", str(stack), "-o", str(out_analytic), "--float",
-                 "--align", "analytic"]) == 0
+    assert (
+        main(["-q", "stack", str(stack), "-o", str(out_analytic), "--float", "--align", "analytic"])
+        == 0
+    )
     # Breathing moves pixels by up to ~1.4 px at the edge: compare on the outer ring.
     yy, xx = np.mgrid[:256, :256]
     radius = np.hypot(yy - 127.5, xx - 127.5)
@@ -138,11 +154,16 @@ def peak_memory(folder, n_frames, shape=(384, 384, 3)):
     rng = np.random.default_rng(1)
     base = rng.random(shape, dtype=np.float32)
     for i in range(n_frames):
-        write_image(folder / f"f_{i:03d}.tif", base * (0.5 + 0.5 * i / n_frames), encoding="float32")
+        write_image(
+            folder / f"f_{i:03d}.tif", base * (0.5 + 0.5 * i / n_frames), encoding="float32"
+        )
     tracemalloc.start()
     with scheduler_context(threads=2):
-        process_stack([str(folder / "f_*.tif")], folder / "out.tif",
-                      StackOptions(align="none", blur_span_px=12.0, encoding="float32"))
+        process_stack(
+            [str(folder / "f_*.tif")],
+            folder / "out.tif",
+            StackOptions(align="none", blur_span_px=12.0, encoding="float32"),
+        )
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     return peak
@@ -188,7 +209,9 @@ def test_empty_directory(tmp_path, capsys):
     assert_clean_failure(code, err, out, "no image files")
 
 
-@pytest.mark.parametrize("source", ["focusstack-pcb/pcb7/pcb_001.jpg", "raw-dng-canon550d/colorchart.dng"])
+@pytest.mark.parametrize(
+    "source", ["focusstack-pcb/pcb7/pcb_001.jpg", "raw-dng-canon550d/colorchart.dng"]
+)
 def test_truncated_files(tmp_path, capsys, shared_data, source):
     data_bytes = (shared_data / source).read_bytes()
     folder = tmp_path / "s"
@@ -211,13 +234,32 @@ def test_frames_of_different_sizes(tmp_path, capsys):
     assert_clean_failure(code, err, out, "b.tif")
 
 
+def _missing_file(text):
+    return text.replace('file = "frame_01.tif"', 'file = "missing.tif"')
+
+
+def _two_position_kinds(text):
+    return text.replace(
+        "image_distance_mm = ", "focus_distance_mm = 900.0\nimage_distance_mm = ", 1
+    )
+
+
+def _focus_inside_f(text):
+    first = text.split("image_distance_mm = ")[1].split("\n")[0]
+    return text.replace(f"image_distance_mm = {first}", "focus_distance_mm = 10.0", 1)
+
+
+def _unknown_lens(text):
+    return text.replace(LENS, "no-such-lens")
+
+
 @pytest.mark.parametrize(
     ("edit", "needle"),
     [
-        (lambda t: t.replace('file = "frame_01.tif"', 'file = "missing.tif"'), "missing.tif"),
-        (lambda t: t.replace("image_distance_mm = ", "focus_distance_mm = 900.0\nimage_distance_mm = ", 1), "frame"),
-        (lambda t: t.replace(t.split("image_distance_mm = ")[1].split("\n")[0], "x", 1).replace("image_distance_mm = x", "focus_distance_mm = 10.0"), "focal length"),
-        (lambda t: t.replace(LENS, "no-such-lens"), "no-such-lens"),
+        (_missing_file, "missing.tif"),
+        (_two_position_kinds, "frame"),
+        (_focus_inside_f, "focal length"),
+        (_unknown_lens, "no-such-lens"),
     ],
     ids=["missing-file", "two-position-kinds", "focus-inside-f", "unknown-lens"],
 )
@@ -247,8 +289,11 @@ def test_shipped_sample_each_method_beats_the_best_frame(repo_root, tmp_path):
     scores = {}
     with scheduler_context(threads=2):
         for method in ("wiener", "rl", "sparse"):
-            job = process_stack([sample], tmp_path / f"{method}.tif",
-                                StackOptions(method=method, encoding="float32"))
+            job = process_stack(
+                [sample],
+                tmp_path / f"{method}.tif",
+                StackOptions(method=method, encoding="float32"),
+            )
             scores[method] = psnr(job.image, truth)
     assert min(scores.values()) > best_frame + 4.0, (scores, best_frame)
     assert scores["sparse"] > scores["wiener"], scores

@@ -39,7 +39,10 @@ def test_round_trip_through_toml(tmp_path):
     ("text", "message"),
     [
         ("focal_length_mm = 12.5\nf_number = 1.4\nzoom = 2\n", "unknown key 'zoom'"),
-        ("f_number = 1.4\n[sensor]\npixel_pitch_um=4\nwidth_px=4\nheight_px=4\n", "focal_length_mm"),
+        (
+            "f_number = 1.4\n[sensor]\npixel_pitch_um=4\nwidth_px=4\nheight_px=4\n",
+            "focal_length_mm",
+        ),
         (
             "focal_length_mm = 12.5\nf_number = 1.4\n[sensor]\npixel_pitch_um=4\nwidth_px=4\n",
             "height_px",
@@ -66,5 +69,5 @@ def test_bad_profiles_name_key_and_file(tmp_path, text, message):
 
 
 def test_unknown_profile_lists_the_known_ones():
-    with pytest.raises(InputError, match="fujinon-12.5mm"):
+    with pytest.raises(InputError, match=r"fujinon-12\.5mm"):
         load_lens("no-such-lens")

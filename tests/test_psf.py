@@ -150,7 +150,9 @@ def test_encircled_energy_is_integral_of_radial_profile(lens, sweep, model):
 @pytest.mark.parametrize("depth", np.geomspace(450.0, 2000.0, 7).tolist())
 def test_analytic_kernel_matches_numeric_eq5(lens, sweep, model, depth):
     analytic = psf.integrated_psf(lens, depth, sweep, model=model, method="analytic")
-    numeric = psf.integrated_psf(lens, depth, sweep, model=model, method="numeric", size=analytic.shape[0])
+    numeric = psf.integrated_psf(
+        lens, depth, sweep, model=model, method="numeric", size=analytic.shape[0]
+    )
     assert_kernel(analytic)
     assert np.abs(analytic - numeric).sum() < 1e-3  # normalised L1 (both sum to 1)
 
@@ -177,9 +179,10 @@ def test_depth_invariance_fig5(lens, sweep):
     d_edof = np.array([[psf.dissimilarity(a, b) for b in edof] for a in edof])
     assert np.allclose(np.diag(d_normal), 0) and np.allclose(np.diag(d_edof), 0)
     off = ~np.eye(len(DEPTHS), dtype=bool)
-    assert d_edof[off].max() < 0.1 * d_normal[off].min() or d_edof[off].mean() < 0.01 * d_normal[
-        off
-    ].mean()
+    assert (
+        d_edof[off].max() < 0.1 * d_normal[off].min()
+        or d_edof[off].mean() < 0.01 * d_normal[off].mean()
+    )
 
 
 def test_dissimilarity_is_symmetric_and_zero_on_itself(lens, sweep):
@@ -273,7 +276,9 @@ def test_three_segment_motion_with_pause_and_reversal(lens):
     [("f_number", 0.0), ("f_number", -1.4), ("pixel_pitch_um", 0.0), ("focal_length_mm", -3.0)],
 )
 def test_non_positive_lens_parameters_are_named(field, value):
-    kwargs = dict(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=4.65, width_px=10, height_px=10)
+    kwargs = dict(
+        focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=4.65, width_px=10, height_px=10
+    )
     kwargs[field] = value
     with pytest.raises(InputError, match=field):
         Lens(**kwargs)

@@ -42,8 +42,21 @@ def test_sweep_image_is_sharpened(tmp_path, scene):
     captured = sweep_capture(scene, 1000.0)
     write_image(tmp_path / "capture.tif", captured, encoding="float32")
     out = tmp_path / "edof.tif"
-    args = ["sweep", str(tmp_path / "capture.tif"), "-o", str(out), "--lens", LENS,
-            "--near", str(NEAR), "--far", str(FAR), "--exposure", str(EXPOSURE), "--linear"]
+    args = [
+        "sweep",
+        str(tmp_path / "capture.tif"),
+        "-o",
+        str(out),
+        "--lens",
+        LENS,
+        "--near",
+        str(NEAR),
+        "--far",
+        str(FAR),
+        "--exposure",
+        str(EXPOSURE),
+        "--linear",
+    ]
     assert main(args) == 0
     restored = read_frame(out)
     assert psnr(restored, scene) > psnr(captured, scene) + 3.0
@@ -59,8 +72,21 @@ def test_sequence_and_depth_independence(tmp_path, scene):
         paths.append(path)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
-    args = ["sweep", *map(str, paths), "-o", str(out_dir), "--lens", LENS,
-            "--near", str(NEAR), "--far", str(FAR), "--exposure", str(EXPOSURE), "--linear"]
+    args = [
+        "sweep",
+        *map(str, paths),
+        "-o",
+        str(out_dir),
+        "--lens",
+        LENS,
+        "--near",
+        str(NEAR),
+        "--far",
+        str(FAR),
+        "--exposure",
+        str(EXPOSURE),
+        "--linear",
+    ]
     assert main(args) == 0
     for path in paths:
         restored = read_frame(out_dir / f"{path.stem}_edof.tif")
@@ -77,8 +103,20 @@ def test_edof_video(tmp_path, scene):
         writer.write(np.ascontiguousarray(encoded))
     writer.release()
     out = tmp_path / "edof.avi"
-    args = ["sweep", str(video), "-o", str(out), "--lens", LENS, "--near", str(NEAR),
-            "--far", str(FAR), "--exposure", str(EXPOSURE)]
+    args = [
+        "sweep",
+        str(video),
+        "-o",
+        str(out),
+        "--lens",
+        LENS,
+        "--near",
+        str(NEAR),
+        "--far",
+        str(FAR),
+        "--exposure",
+        str(EXPOSURE),
+    ]
     assert main(args) == 0
     reader = cv2.VideoCapture(str(out))
     assert int(reader.get(cv2.CAP_PROP_FRAME_COUNT)) == 5
@@ -105,8 +143,20 @@ def test_sweep_stack_directory(tmp_path, scene):
 
 def test_near_beyond_far_is_a_clear_error(tmp_path, capsys):
     (tmp_path / "x.tif").write_bytes(b"")
-    code = main(["sweep", str(tmp_path / "x.tif"), "-o", str(tmp_path / "o.tif"), "--lens", LENS,
-                 "--near", "2000", "--far", "1000"])
+    code = main(
+        [
+            "sweep",
+            str(tmp_path / "x.tif"),
+            "-o",
+            str(tmp_path / "o.tif"),
+            "--lens",
+            LENS,
+            "--near",
+            "2000",
+            "--far",
+            "1000",
+        ]
+    )
     assert code == 2
     assert "--near" in capsys.readouterr().err
     assert not (tmp_path / "o.tif").exists()

@@ -8,6 +8,7 @@ import pytest
 from scipy import signal
 
 from pipeline import deconvolve as dc
+from pipeline import psf
 from pipeline.errors import InputError
 from pipeline.tiling import deconvolve_tiled
 
@@ -17,13 +18,8 @@ def gaussian_kernel(sigma: float, half: int) -> np.ndarray:
     return np.outer(g, g) / np.outer(g, g).sum()
 
 
-def disk_kernel(radius: float, supersample: int = 8) -> np.ndarray:
-    half = int(np.ceil(radius))
-    side = 2 * half + 1
-    c = (np.arange(side * supersample) + 0.5) / supersample - side / 2
-    inside = (c[:, None] ** 2 + c[None, :] ** 2 <= radius**2).astype(float)
-    k = inside.reshape(side, supersample, side, supersample).mean(axis=(1, 3))
-    return k / k.sum()
+def disk_kernel(radius: float) -> np.ndarray:
+    return psf.raster_pillbox(2 * radius, int(np.ceil(radius)))
 
 
 @pytest.fixture(scope="module")

@@ -6,28 +6,29 @@ Usage: .venv/bin/python benchmarks/bench_deconvolve.py [--kernel ipsf|pillbox] [
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
 
 import numpy as np
 from scipy import signal
 
 from pipeline import deconvolve as dc
+from pipeline import psf
+from pipeline.motion import constant_speed
+from pipeline.profiles import load_lens
 
 
-def pillbox(radius: float, supersample: int = 8) -> np.ndarray:
-    half = int(np.ceil(radius))
-    side = 2 * half + 1
-    c = (np.arange(side * supersample) + 0.5) / supersample - side / 2
-    inside = (c[:, None] ** 2 + c[None, :] ** 2 <= radius**2).astype(float)
-    k = inside.reshape(side, supersample, side, supersample).mean(axis=(1, 3))
-    return k / k.sum()
+def pillbox(radius: float) -> np.ndarray:
+    """Eq. 3 rasterised exactly (disk areas)."""
+    return psf.raster_pillbox(2 * radius, int(np.ceil(radius)))
 
 
-def ipsf_like(half: int = 30) -> np.ndarray:
-    """Radial profile ~ 1/r out to the largest blur (the shape of Eq. 6), 61 px."""
-    r = np.hypot(*np.mgrid[-half : half + 1, -half : half + 1])
-    k = np.where(r <= half, 1.0 / np.maximum(r, 0.5), 0.0)
-    return k / k.sum()
+def ipsf_like(size: int = 61) -> np.ndarray:
+    """The Sec. 4.1 EDOF IPSF (Eq. 6) at 750 mm, scaled to ``size`` px by the pixel pitch."""
+    lens = load_lens("fujinon-12.5mm-f1.4-sony-1-3in")
+    natural = psf.integrated_psf(lens, 750.0, constant_speed(12.5, 1.0, 0.36)).shape[0]
+    lens = dataclasses.replace(lens, pixel_pitch_um=lens.pixel_pitch_um * natural / size)
+    return psf.integrated_psf(lens, 750.0, constant_speed(12.5, 1.0, 0.36), size=size)
 
 
 def main() -> None:
