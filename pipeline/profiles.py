@@ -11,9 +11,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from pathlib import Path
-
 import tomllib
+from pathlib import Path
 
 from pipeline.errors import InputError
 

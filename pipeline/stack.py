@@ -19,13 +19,13 @@ import glob
 import logging
 import math
 import re
+import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 
 import dask
 import dask.array as da
 import numpy as np
-import tomllib
 from dask.base import tokenize
 
 from pipeline import optics

@@ -317,7 +317,11 @@ concurrency = 1
         while time.monotonic() < deadline and run.poll() is None:
             if (out / LEDGER_NAME).exists():
                 check_outputs_complete(out, shapes)  # never a truncated output, even mid-run
-                done_at_kill = ledger_rows(out, "SELECT stack FROM stacks WHERE status='done'")
+                try:
+                    done_at_kill = ledger_rows(out, "SELECT stack FROM stacks WHERE status='done'")
+                except sqlite3.OperationalError:  # created, its tables not yet
+                    time.sleep(0.05)
+                    continue
                 if len(done_at_kill) >= 2:
                     break
             time.sleep(0.05)
