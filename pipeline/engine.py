@@ -80,27 +80,29 @@ def _no_progress(stage: str, done: int, total: int) -> None:
 
 
 # ----------------------------------------------------------------------------- frame leaves
-def _warped_leaf(path: str, homography, weight: float, shape) -> tuple[np.ndarray, np.ndarray]:
-    """Read one frame, warp it onto the reference, weight it; also its clipped pixels."""
+def _warped_leaf(path: str, homography, weight: float, shape):
+    """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode time."""
+    t0 = time.perf_counter()
     frame = read_frame(path)
+    read_s = time.perf_counter() - t0
     if homography is not None:
         frame = align.warp(frame, homography, shape)
-    clipped = np.any(frame >= SATURATION, axis=-1) if frame.ndim == 3 else frame >= SATURATION
+    clipped = clipped_pixels(frame)
     frame *= np.float32(weight)
-    return frame, clipped
+    return frame, clipped, read_s
 
 
-def _merge(a: tuple[np.ndarray, np.ndarray], b: tuple[np.ndarray, np.ndarray]):
-    """Sum two partial weighted sums (in place) and OR their clipped masks."""
+def _merge(a, b):
+    """Sum two partial weighted sums (in place), OR their clipped masks, add decode times."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    return a
+    return a[0], a[1], a[2] + b[2]
 
 
 def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
     """A dask graph for ``sum_i w_i warp(frame_i)`` as a binary tree of merges.
 
-    Returns a Delayed yielding ``(sum, clipped_any_frame)``.
+    Returns a Delayed yielding ``(sum, clipped_any_frame, decode_seconds)``.
     """
     level = [
         dask.delayed(_warped_leaf, pure=True)(str(path), h, float(w), tuple(shape))
@@ -306,9 +308,10 @@ def process_stack(
         shape,
     )
     progress("accumulate", 0, 1)
-    ((average, clipped),) = dask.compute(graph)
+    ((average, clipped, read_s),) = dask.compute(graph)
     progress("accumulate", 1, 1)
     timings["accumulate"] = time.perf_counter() - t0
+    timings["read"] = read_s  # full-resolution decoding, summed over worker threads
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()

@@ -164,15 +164,15 @@ def encircled_energy(rho_px, pieces, *, model: str = "pillbox", gaussian_g: floa
 
 
 # ----------------------------------------------------------------------------- rasterising
-def _pixel_integrate_radial(energy, half: int) -> np.ndarray:
+def _pixel_integrate_radial(energy, half: int, theta_order: int = 8) -> np.ndarray:
     """Integrate a radially symmetric density over every pixel of a ``2 half + 1`` grid.
 
     ``energy(rho)`` is the density's encircled energy (fraction within ``rho``); a
     pixel's share is ``(1/2 pi) int (E(rho_out(t)) - E(rho_in(t))) dt`` over the
     angles ``t`` the pixel subtends, split at its corners and integrated by
-    Gauss-Legendre. Computed on one octant and mirrored.
+    Gauss-Legendre (``theta_order`` nodes per piece). Computed on one octant and mirrored.
     """
-    nodes, weights = _GL_THETA
+    nodes, weights = _GL_THETA if theta_order == 8 else np.polynomial.legendre.leggauss(theta_order)
     ys, xs = np.nonzero(np.triu(np.ones((half + 1, half + 1), dtype=bool)))  # y <= x
     xs_f, ys_f = xs.astype(np.float64), ys.astype(np.float64)
     octant = np.zeros(xs.size)
@@ -363,6 +363,9 @@ def integrated_psf(
     model: str | None = None,
     size: int | None = None,
     method: str = "auto",
+    theta_order: int = 8,
+    time_order: int = 6,
+    time_step_px: float = 0.5,
 ) -> np.ndarray:
     """Pixel kernel of the integrated PSF of a moving detector (Eq. 5).
 
@@ -381,6 +384,12 @@ def integrated_psf(
         "analytic": closed-form Eqs. 6/7 (corrected, see module notes) integrated
         over pixel areas; "numeric": quadrature of Eq. 5 over time. "auto" is
         "analytic", which is exact for every piecewise-linear motion.
+    theta_order : int
+        "analytic": Gauss-Legendre nodes per angular piece of a pixel's polar integral.
+    time_order, time_step_px : int, float
+        "numeric": Gauss-Legendre nodes per time sub-interval, each sub-interval
+        spanning at most ``time_step_px`` px of blur diameter.
+        (Accuracy/time trade-offs: ``flexdof bench accuracy``.)
 
     Returns
     -------
@@ -399,13 +408,18 @@ def integrated_psf(
         raise InputError(f"profile must be a pipeline.motion.Profile, got {type(profile).__name__}")
     if method not in ("auto", "analytic", "numeric"):
         raise InputError(f"method must be 'auto', 'analytic' or 'numeric', got {method!r}")
+    for name, order in (("theta_order", theta_order), ("time_order", time_order)):
+        if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
+            raise InputError(f"{name} must be an integer >= 1, got {order!r}")
+    if not (isinstance(time_step_px, (int, float)) and 0 < time_step_px < math.inf):
+        raise InputError(f"time_step_px must be a number > 0, got {time_step_px!r}")
     pieces = blur_pieces_px(lens, depth_mm, profile)
     max_blur = max(max(b0, b1) for _, b0, b1 in pieces)
     half = _resolve_size(size, max_blur, model, lens.gaussian_g) // 2
     g = lens.gaussian_g
     if method == "numeric":
-        return _normalise(_numeric_ipsf(pieces, half, model, g))
-    return _normalise(_analytic_ipsf(pieces, half, model, g))
+        return _normalise(_numeric_ipsf(pieces, half, model, g, time_order, time_step_px))
+    return _normalise(_analytic_ipsf(pieces, half, model, g, theta_order))
 
 
 def _raster(model: str, diameter_px: float, half: int, g: float) -> np.ndarray:
@@ -414,7 +428,7 @@ def _raster(model: str, diameter_px: float, half: int, g: float) -> np.ndarray:
     return raster_gaussian(diameter_px, half, gaussian_g=g)
 
 
-def _analytic_ipsf(pieces, half: int, model: str, g: float) -> np.ndarray:
+def _analytic_ipsf(pieces, half: int, model: str, g: float, theta_order: int = 8) -> np.ndarray:
     duration, b_lo, b_hi = _piece_arrays(pieces)
     moving = _moving(b_lo, b_hi)
     kernel = np.zeros((2 * half + 1, 2 * half + 1))
@@ -422,20 +436,24 @@ def _analytic_ipsf(pieces, half: int, model: str, g: float) -> np.ndarray:
         moving_pieces = [pieces[i] for i in np.flatnonzero(moving)]
         share = duration[moving].sum() / duration.sum()
         kernel += share * _pixel_integrate_radial(
-            lambda rho: encircled_energy(rho, moving_pieces, model=model, gaussian_g=g), half
+            lambda rho: encircled_energy(rho, moving_pieces, model=model, gaussian_g=g),
+            half,
+            theta_order,
         )
     for i in np.flatnonzero(~moving):  # pauses: the lens PSF itself, rasterised exactly
         kernel += duration[i] / duration.sum() * _raster(model, b_lo[i], half, g)
     return kernel
 
 
-def _numeric_ipsf(pieces, half: int, model: str, g: float) -> np.ndarray:
-    """Eq. 5 by composite Gauss-Legendre over time, each sub-interval spanning <= 0.5 px of blur."""
-    nodes, weights = _GL_TIME
+def _numeric_ipsf(
+    pieces, half: int, model: str, g: float, order: int = 6, step_px: float = 0.5
+) -> np.ndarray:
+    """Eq. 5 by composite Gauss-Legendre over time, sub-intervals spanning <= step_px of blur."""
+    nodes, weights = _GL_TIME if order == 6 else np.polynomial.legendre.leggauss(order)
     kernel = np.zeros((2 * half + 1, 2 * half + 1))
     total = sum(d for d, _, _ in pieces)
     for duration, b0, b1 in pieces:
-        n_sub = max(1, math.ceil(abs(b1 - b0) / 0.5))
+        n_sub = max(1, math.ceil(abs(b1 - b0) / step_px))
         edges = np.linspace(0.0, 1.0, n_sub + 1)
         for lo, hi in itertools.pairwise(edges):
             for node, weight in zip(nodes, weights):
