@@ -422,7 +422,8 @@ def integrated_psf(
     return _normalise(_analytic_ipsf(pieces, half, model, g, theta_order))
 
 
-def _raster(model: str, diameter_px: float, half: int, g: float) -> np.ndarray:
+def raster_lens_psf(model: str, diameter_px: float, half: int, g: float = 1.0) -> np.ndarray:
+    """Eq. 3 or Eq. 4 of diameter ``diameter_px`` integrated over a ``2 half + 1`` pixel grid."""
     if model == "pillbox":
         return raster_pillbox(diameter_px, half)
     return raster_gaussian(diameter_px, half, gaussian_g=g)
@@ -441,7 +442,7 @@ def _analytic_ipsf(pieces, half: int, model: str, g: float, theta_order: int = 8
             theta_order,
         )
     for i in np.flatnonzero(~moving):  # pauses: the lens PSF itself, rasterised exactly
-        kernel += duration[i] / duration.sum() * _raster(model, b_lo[i], half, g)
+        kernel += duration[i] / duration.sum() * raster_lens_psf(model, b_lo[i], half, g)
     return kernel
 
 
@@ -459,7 +460,13 @@ def _numeric_ipsf(
             for node, weight in zip(nodes, weights):
                 frac = lo + (hi - lo) * 0.5 * (node + 1)
                 b = b0 + (b1 - b0) * frac
-                kernel += (duration / total) * (hi - lo) * 0.5 * weight * _raster(model, b, half, g)
+                kernel += (
+                    (duration / total)
+                    * (hi - lo)
+                    * 0.5
+                    * weight
+                    * raster_lens_psf(model, b, half, g)
+                )
     return kernel
 
 
@@ -571,7 +578,7 @@ def focal_stack_psf(
     def raster(b: float) -> np.ndarray:
         key = round(b, 6)
         if key not in cache:
-            cache[key] = _raster(model, b, half, gaussian_g)
+            cache[key] = raster_lens_psf(model, b, half, gaussian_g)
         return cache[key]
 
     per_position = np.array(

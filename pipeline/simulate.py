@@ -335,7 +335,9 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
     spectra_q = []
     for inv in checks:
         b = _blur_px(lens, inv, p)
-        spectra_q.append([spectra.of(_raster(model, bq, half, lens.gaussian_g)) for bq in b])
+        spectra_q.append(
+            [spectra.of(psf.raster_lens_psf(model, bq, half, lens.gaussian_g)) for bq in b]
+        )
 
     def error(step_of_node, step_shift):
         worst = 0.0
@@ -355,16 +357,10 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
         step_of_node = np.arange(nodes) * n // nodes
         step_shift = np.array([shifts[step_of_node == s].mean(axis=0) for s in range(n)])
         err = error(step_of_node, step_shift)
-        if err <= tol or n >= MAX_MAGNIFICATION_STEPS:
+        if err <= tol or n >= min(MAX_MAGNIFICATION_STEPS, nodes):
             break
-        n *= 2
+        n = min(2 * n, nodes)  # at most one step per time node: no empty steps
     return _steps(profile, p_ref, n), err, True, n
-
-
-def _raster(model: str, b: float, half: int, g: float) -> np.ndarray:
-    if model == "pillbox":
-        return psf.raster_pillbox(b, half)
-    return psf.raster_gaussian(b, half, gaussian_g=g)
 
 
 def _edges(scene: Scene, edge: float, radius: int) -> tuple[int, float]:
