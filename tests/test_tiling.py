@@ -72,3 +72,13 @@ def test_bad_tile_size_and_nan_rejected():
     y[0, 0] = np.nan
     with pytest.raises(InputError, match="image"):
         deconvolve_tiled(da.from_array(y, chunks=4), np.ones((1, 1)))
+
+
+def test_sparse_is_never_tiled_so_it_equals_the_untiled_result():
+    rng = np.random.default_rng(5)
+    image = rng.random((96, 80)).astype(np.float32)
+    k = disk_kernel(2.5)
+    options = {"iterations": 8}
+    tiled = deconvolve_tiled(image, k, method="sparse", tile_px=24, **options)
+    whole = dc.deconvolve(image, k, method="sparse", **options)
+    np.testing.assert_allclose(tiled, whole, atol=1e-6)
