@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -70,9 +71,9 @@ def main() -> int:
         "best frame edge px | regions sharper | time s |",
         "|---" * 9 + "|",
     ]
-    with scheduler_context(threads=2):
+    with scheduler_context(threads=2), tempfile.TemporaryDirectory() as tmp:
         for name, pattern in STACKS.items():
-            out = args.out / f"{name}.tif"
+            out = Path(tmp) / f"{name}.tif"  # only the crops and the table are kept
             job = process_stack([str(SHARED / pattern)], out, StackOptions(method=args.method))
             side = job.sidecar
             scores, frames = evaluate(job.image, side)
