@@ -52,8 +52,9 @@ _FRAME_KEYS = ("file", *POSITION_KEYS)
 _SWEEP_PAIRS = (
     ("start_image_distance_mm", "end_image_distance_mm"),
     ("start_focus_distance_mm", "end_focus_distance_mm"),
+    ("start_focus_step", "end_focus_step"),  # tethered sweeps (flexdof tether sweep)
 )
-_SWEEP_KEYS = ("file", *_SWEEP_PAIRS[0], *_SWEEP_PAIRS[1], "exposure_s", "profile")
+_SWEEP_KEYS = ("file", *(key for pair in _SWEEP_PAIRS for key in pair), "exposure_s", "profile")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -105,6 +106,8 @@ class Sweep:
     end_image_distance_mm: float | None = None
     start_focus_distance_mm: float | None = None
     end_focus_distance_mm: float | None = None
+    start_focus_step: float | None = None
+    end_focus_step: float | None = None
     profile: str = "constant-speed"
 
 
@@ -339,7 +342,10 @@ def _parse_sweep(toml: Path, base: Path, table: object) -> Sweep:
             f"got {profile!r}"
         )
     inf_ok = pairs[0] is _SWEEP_PAIRS[1]
-    ends = {key: _positive(toml, key, table[key], allow_inf=inf_ok) for key in pairs[0]}
+    if pairs[0] is _SWEEP_PAIRS[2]:  # drive steps: any finite numbers
+        ends = {key: _number(toml, key, table[key]) for key in pairs[0]}
+    else:
+        ends = {key: _positive(toml, key, table[key], allow_inf=inf_ok) for key in pairs[0]}
     return Sweep(
         file=_sidecar_file(toml, base, table["file"], " in [sweep]"),
         exposure_s=_positive(toml, "exposure_s", table["exposure_s"]),
@@ -542,13 +548,28 @@ def image_distances_mm(stack: Stack, lens: Lens | None = None) -> FocusPositions
 def sweep_profile(stack: Stack, lens: Lens | None = None) -> Profile:
     """The detector motion p(t) of a sweep capture (constant speed, Sec. 4.1).
 
-    Focus-distance ends are converted to image distances with Eq. 1.
+    Focus-distance ends are converted to image distances with Eq. 1. Focus-drive
+    steps (``+`` = towards far) need the lens's ``step_image_distance_um`` and give
+    only relative positions: the far end is placed at infinity focus (``p = f``).
+    The IPSF depends on the blur swept, ``a dp / (p pitch)``, so the unknown offset
+    changes it by about ``dp / f`` (a few % for a focus ring's travel).
     """
     sweep = stack.sweep
     if stack.kind != "sweep" or sweep is None:
         raise InputError(f"{stack.base_dir}: not a sweep capture (kind = {stack.kind!r})")
     if sweep.start_image_distance_mm is not None:
         start, end = sweep.start_image_distance_mm, sweep.end_image_distance_mm
+    elif sweep.start_focus_step is not None:
+        lens = _require_lens(stack, lens, "a focus-step sweep")
+        if lens.step_image_distance_um is None:
+            raise InputError(
+                f"lens {lens.name!r} ({lens.source}) has no step_image_distance_um: calibrate "
+                "the focus drive (flexdof tether calibrate) to deconvolve a focus-step sweep"
+            )
+        far = max(sweep.start_focus_step, sweep.end_focus_step)
+        step_mm = lens.step_image_distance_um * 1e-3
+        start = lens.focal_length_mm + (far - sweep.start_focus_step) * step_mm
+        end = lens.focal_length_mm + (far - sweep.end_focus_step) * step_mm
     else:
         f = _require_lens(stack, lens, "a focus-distance sweep").focal_length_mm
         start = float(optics.image_distance(f, sweep.start_focus_distance_mm))  # Eq. 1

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from pathlib import Path
@@ -11,7 +12,7 @@ import usb.core
 
 from pipeline import cli
 from pipeline.errors import InputError, TetherError
-from pipeline.profiles import load_lens
+from pipeline.profiles import lens_to_toml, load_lens
 from pipeline.tether.camera import CapturedObject, EndStop
 from pipeline.tether.codes import OC, CanonOC, NikonOC
 from pipeline.tether.emulator import (
@@ -248,3 +249,23 @@ def test_device_reset_closes_the_session_and_it_can_reopen():
         assert cam.session_open
         camera.start()
     _assert_safe(cam)
+
+
+def test_tethered_sweep_processes_with_a_calibrated_lens(tmp_path, capsys):
+    """A sweep capture's stack.toml (focus steps) deconvolves once the lens is calibrated."""
+    cam = EmulatedCamera(CANON, shutter="bulb", faults=Faults(refuse_drive_while_exposing=False))
+    schedule = [(0.02 * i, 5) for i in range(1, 6)]
+    shots = tmp_path / "sweep"
+    shots.mkdir()
+    with connect(EmulatedBackend(cam), bulb=True, **NO_WAIT) as camera:
+        capture_sweep(camera, shots, schedule, 0.15, lens="sigma-30mm-f1.4-canon-eos-20d",
+                      fallback_step=5)
+    out = tmp_path / "edof.tif"
+    # the shipped profile has no step calibration: a clear error, nothing written
+    assert cli.main(["stack", str(shots), "-o", str(out)]) == 2
+    assert "calibrate" in capsys.readouterr().err and not out.exists()
+    calibrated = tmp_path / "lens.toml"
+    lens = load_lens("sigma-30mm-f1.4-canon-eos-20d")
+    calibrated.write_text(lens_to_toml(dataclasses.replace(lens, step_image_distance_um=5.0)))
+    assert cli.main(["-q", "stack", str(shots), "-o", str(out), "--lens", str(calibrated)]) == 0
+    assert out.is_file()
