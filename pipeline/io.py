@@ -219,7 +219,11 @@ def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
     if kind == "raw":
         return _read_raw(p)
     if kind == "tiff":
-        return _read_tiff(p, transfer)
+        image = _read_tiff(p, transfer)
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        if bad:  # float TIFFs can hold NaN/inf; nothing downstream can use them
+            raise InputError(f"{p}: {bad} pixel values are NaN or infinite; fix or drop this frame")
+        return image
     return _read_codec(p, kind, transfer or "srgb")
 
 

@@ -4,6 +4,7 @@ import tracemalloc
 
 import numpy as np
 import pytest
+import tifffile
 from scipy.signal import fftconvolve
 from skimage import data
 
@@ -297,3 +298,17 @@ def test_shipped_sample_each_method_beats_the_best_frame(repo_root, tmp_path):
             scores[method] = psnr(job.image, truth)
     assert min(scores.values()) > best_frame + 4.0, (scores, best_frame)
     assert scores["sparse"] > scores["wiener"], scores
+
+
+def test_nan_or_inf_pixels_name_the_frame(tmp_path, capsys):
+    folder = tmp_path / "s"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(3):
+        frame = rng.random((48, 48), dtype=np.float32)
+        if i == 1:
+            frame[5, 5], frame[9, 9] = np.nan, np.inf
+        tifffile.imwrite(folder / f"f{i}.tif", frame)
+    out = tmp_path / "out.tif"
+    code, err = run_cli(["stack", str(folder), "-o", str(out), "--blur-span-px", "5"], capsys)
+    assert_clean_failure(code, err, out, "f1.tif", "2 pixel values")
