@@ -13,12 +13,9 @@ from pipeline.cli import main
 from pipeline.engine import StackOptions, process_stack, scheduler_context
 from pipeline.io import read_frame, srgb_to_linear, write_image
 from pipeline.profiles import load_lens
+from pipeline.quality import psnr
 
 LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
-
-
-def psnr(a, b):
-    return 10 * np.log10(1.0 / np.mean((np.clip(a, 0, 1) - b) ** 2))
 
 
 def blur(image, kernel):

@@ -10,14 +10,31 @@ from pipeline import optics, psf
 from pipeline.cli import main
 from pipeline.io import read_frame, srgb_to_linear, write_image
 from pipeline.profiles import load_lens
+from pipeline.quality import psnr
 from pipeline.sweep import profile_from_range
 
 LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 NEAR, FAR, EXPOSURE = 600.0, 3000.0, 0.2
 
 
-def psnr(a, b):
-    return 10 * np.log10(1.0 / np.mean((a - b) ** 2))
+def sweep_args(inputs, output, *extra):
+    """``flexdof sweep`` arguments for the Sec. 4.1-like sweep used throughout."""
+    paths = [str(p) for p in inputs]
+    return [
+        "sweep",
+        *paths,
+        "-o",
+        str(output),
+        "--lens",
+        LENS,
+        "--near",
+        str(NEAR),
+        "--far",
+        str(FAR),
+        "--exposure",
+        str(EXPOSURE),
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -42,21 +59,7 @@ def test_sweep_image_is_sharpened(tmp_path, scene):
     captured = sweep_capture(scene, 1000.0)
     write_image(tmp_path / "capture.tif", captured, encoding="float32")
     out = tmp_path / "edof.tif"
-    args = [
-        "sweep",
-        str(tmp_path / "capture.tif"),
-        "-o",
-        str(out),
-        "--lens",
-        LENS,
-        "--near",
-        str(NEAR),
-        "--far",
-        str(FAR),
-        "--exposure",
-        str(EXPOSURE),
-        "--linear",
-    ]
+    args = sweep_args([str(tmp_path / "capture.tif")], str(out), "--linear")
     assert main(args) == 0
     restored = read_frame(out)
     assert psnr(restored, scene) > psnr(captured, scene) + 3.0
@@ -72,21 +75,7 @@ def test_sequence_and_depth_independence(tmp_path, scene):
         paths.append(path)
     out_dir = tmp_path / "out"
     out_dir.mkdir()
-    args = [
-        "sweep",
-        *map(str, paths),
-        "-o",
-        str(out_dir),
-        "--lens",
-        LENS,
-        "--near",
-        str(NEAR),
-        "--far",
-        str(FAR),
-        "--exposure",
-        str(EXPOSURE),
-        "--linear",
-    ]
+    args = sweep_args(map(str, paths), str(out_dir), "--linear")
     assert main(args) == 0
     for path in paths:
         restored = read_frame(out_dir / f"{path.stem}_edof.tif")
@@ -103,20 +92,7 @@ def test_edof_video(tmp_path, scene):
         writer.write(np.ascontiguousarray(encoded))
     writer.release()
     out = tmp_path / "edof.avi"
-    args = [
-        "sweep",
-        str(video),
-        "-o",
-        str(out),
-        "--lens",
-        LENS,
-        "--near",
-        str(NEAR),
-        "--far",
-        str(FAR),
-        "--exposure",
-        str(EXPOSURE),
-    ]
+    args = sweep_args([str(video)], str(out))
     assert main(args) == 0
     reader = cv2.VideoCapture(str(out))
     assert int(reader.get(cv2.CAP_PROP_FRAME_COUNT)) == 5
