@@ -24,6 +24,7 @@ from pathlib import Path
 import cv2
 import dask
 import numpy as np
+from dask.callbacks import Callback
 
 from pipeline import align, defocus, optics, psf
 from pipeline.errors import InputError
@@ -117,6 +118,20 @@ def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
             merged.append(level[-1])
         level = merged
     return level[0]
+
+
+class _TaskProgress(Callback):
+    """Counts finished tasks whose key starts with ``prefix`` (local schedulers only)."""
+
+    def __init__(self, prefix: str, report: Callable[[int], None]) -> None:
+        super().__init__()
+        self.prefix, self.report, self.done = prefix, report, 0
+
+    def _posttask(self, key, result, dsk, state, worker_id) -> None:
+        name = key[0] if isinstance(key, tuple) else key
+        if str(name).startswith(self.prefix):
+            self.done += 1
+            self.report(self.done)
 
 
 # ----------------------------------------------------------------------------- scheduler
@@ -226,9 +241,12 @@ def stack_kernel(
 
 
 # ----------------------------------------------------------------------------- previews
-def read_previews(files: Sequence[Path], max_side_px: int) -> list[np.ndarray]:
+def read_previews(
+    files: Sequence[Path], max_side_px: int, progress: Progress = _no_progress
+) -> list[np.ndarray]:
     """Reduced grey copies of every frame, decoded in parallel (one cheap decode each)."""
-    return list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
+    with _TaskProgress("read_preview", lambda done: progress("preview", done, len(files))):
+        return list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
 
 
 def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
@@ -271,16 +289,15 @@ def process_stack(
     shape = info.shape
     n = len(stack)
     positions, absolute = _sidecar_positions(stack, lens)
-    progress("align", 0, n)
 
     t0 = time.perf_counter()
     needs_fit = not (lens is not None and absolute) and options.blur_span_px is None
     previews = None
     if options.align == "estimate" or needs_fit:
-        previews = read_previews(stack.files, options.align_max_side_px)
-        progress("align", n // 2, n)
+        previews = read_previews(stack.files, options.align_max_side_px, progress)
+    progress("align", 0, 1)
     alignments = _align(stack, options, positions, absolute, previews, shape)
-    progress("align", n, n)
+    progress("align", 1, 1)
     timings["align"] = time.perf_counter() - t0
 
     positions_source = stack.positions_source or "stack.toml"
@@ -309,9 +326,11 @@ def process_stack(
         weights,
         shape,
     )
-    progress("accumulate", 0, 1)
-    ((average, clipped, read_s),) = dask.compute(graph)
-    progress("accumulate", 1, 1)
+    frames_used = int(np.count_nonzero(weights > 0))
+    progress("accumulate", 0, frames_used)
+    with _TaskProgress("_warped_leaf", lambda done: progress("accumulate", done, frames_used)):
+        ((average, clipped, read_s),) = dask.compute(graph)
+    progress("accumulate", frames_used, frames_used)
     timings["accumulate"] = time.perf_counter() - t0
     timings["read"] = read_s  # full-resolution decoding, summed over worker threads
 

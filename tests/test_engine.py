@@ -309,3 +309,18 @@ def test_nan_or_inf_pixels_name_the_frame(tmp_path, capsys):
     out = tmp_path / "out.tif"
     code, err = run_cli(["stack", str(folder), "-o", str(out), "--blur-span-px", "5"], capsys)
     assert_clean_failure(code, err, out, "f1.tif", "2 pixel values")
+
+
+def test_progress_reports_every_frame(repo_root, tmp_path):
+    seen = []
+    with scheduler_context(threads=2):
+        process_stack(
+            [repo_root / "stacks" / "motorcycle"],
+            tmp_path / "o.tif",
+            StackOptions(),
+            progress=lambda stage, done, total: seen.append((stage, done, total)),
+        )
+    for stage in ("preview", "accumulate"):
+        counts = [done for s, done, total in seen if s == stage]
+        assert sorted(set(counts)) >= list(range(1, 9)) and max(counts) == 8
+    assert [s for s, _, _ in seen][-1] == "deconvolve"
