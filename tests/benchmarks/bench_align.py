@@ -1,6 +1,6 @@
 """Time alignment against decoding on a real focal stack (pcb10: 10 JPEG frames, 2048x1536).
 
-Usage: .venv/bin/python benchmarks/bench_align.py [STACK_DIR] [--max-side-px N] [--model M]
+Usage: .venv/bin/python tests/benchmarks/bench_align.py [STACK_DIR] [--max-side-px N] [--model M]
 
 Prints, per frame: JPEG decode + sRGB linearisation, estimation (reduction + ECC), one
 full-resolution RGB warp, and the recovered magnifications.
@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline.align import estimate_alignment, warp
 
-DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "focusstack-pcb" / "pcb10"
+DEFAULT = Path(__file__).resolve().parents[3] / "shared" / "data" / "focusstack-pcb" / "pcb10"
 
 
 def decode(path: Path) -> np.ndarray:

@@ -1,6 +1,6 @@
 """Time deconvolve() per method on a 2048x1536x3 float32 frame with a ~61 px kernel.
 
-Usage: .venv/bin/python benchmarks/bench_deconvolve.py [--kernel ipsf|pillbox] [--methods ...]
+Usage: .venv/bin/python tests/benchmarks/bench_deconvolve.py [--kernel ipsf|pillbox] [--methods ...]
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Cost of the forward model: plan and render time vs scene and tolerance (not a test).
 
-Run: ``.venv/bin/python benchmarks/bench_simulate.py``. Scenes (250 x 370 px, RGB): a flat
+Run: ``.venv/bin/python tests/benchmarks/bench_simulate.py``. Scenes (250 x 370 px, RGB): a flat
 scene (one depth), a 2-plane scene (a near rectangle over a far plane) and the motorcycle
 scene of ``stacks/generate_motorcycle.py``; camera: the resampled 12.5 mm f/1.4 lens of
 that stack, focused at 750 mm. Then the motorcycle at tolerance 1e-2 / 1e-3 / 1e-4.
@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 sys.path[:0] = [str(ROOT), str(ROOT / "stacks")]
 
 import generate_motorcycle  # noqa: E402

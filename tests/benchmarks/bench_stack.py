@@ -1,6 +1,6 @@
 """Main-job benchmark (issue 3, 7): end-to-end time on a stack against decoding its frames alone.
 
-    python benchmarks/bench_stack.py [GLOB] [--repeat 3] [--profile]
+    python tests/benchmarks/bench_stack.py [GLOB] [--repeat 3] [--profile]
 
 Prints, from one run: decode-alone time (the frames read and converted to float32
 linear light with the same 2-thread parallelism), the main job's stages (from its
