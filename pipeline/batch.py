@@ -47,6 +47,7 @@ from dask.callbacks import Callback
 
 from pipeline.engine import StackOptions, process_stack
 from pipeline.errors import FlexdofError, InputError
+from pipeline.ledger import sha256_file
 
 log = logging.getLogger(__name__)
 
@@ -152,7 +153,7 @@ def run_stack_task(job: BatchJob, threads: int, run_token: str = "") -> dict:
         result.update(
             status="done",
             timings=stack_result.sidecar.get("timings_s"),
-            output_sha256=_sha256(Path(job.output)),
+            output_sha256=sha256_file(Path(job.output)),
         )
     except (InputError, ValueError) as err:
         result.update(status="failed", error_kind="input", error=_describe(err))
@@ -173,14 +174,6 @@ def run_stack_task(job: BatchJob, threads: int, run_token: str = "") -> dict:
 def _describe(err: BaseException) -> str:
     text = str(err) or type(err).__name__
     return text if isinstance(err, FlexdofError) else f"{type(err).__name__}: {text}"
-
-
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def batch_graph(jobs: Sequence[BatchJob], *, threads_per_stack: int = 1, run_token: str = ""):

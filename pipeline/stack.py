@@ -277,7 +277,8 @@ def _positive(toml: Path, key: str, value: object, *, allow_inf: bool = False) -
     return number
 
 
-def _check_keys(toml: Path, table: dict, known: Sequence[str], where: str) -> None:
+def check_toml_keys(toml: Path, table: dict, known: Sequence[str], where: str) -> None:
+    """Refuse keys of a TOML table that the schema does not know, naming file and key."""
     for key in table:
         if key not in known:
             raise InputError(f"{toml}: unknown key {key!r}{where} (known: {', '.join(known)})")
@@ -301,7 +302,7 @@ def _parse_frame(toml: Path, base: Path, index: int, table: object) -> Frame:
     where = f" in [[frames]] #{index + 1}"
     if not isinstance(table, dict):
         raise InputError(f"{toml}: [[frames]] #{index + 1} must be a table")
-    _check_keys(toml, table, _FRAME_KEYS, where)
+    check_toml_keys(toml, table, _FRAME_KEYS, where)
     if "file" not in table:
         raise InputError(f"{toml}: missing key 'file'{where}")
     file = _sidecar_file(toml, base, table["file"], where)
@@ -325,7 +326,7 @@ def _parse_frame(toml: Path, base: Path, index: int, table: object) -> Frame:
 def _parse_sweep(toml: Path, base: Path, table: object) -> Sweep:
     if not isinstance(table, dict):
         raise InputError(f"{toml}: [sweep] must be a table")
-    _check_keys(toml, table, _SWEEP_KEYS, " in [sweep]")
+    check_toml_keys(toml, table, _SWEEP_KEYS, " in [sweep]")
     for key in ("file", "exposure_s"):
         if key not in table:
             raise InputError(f"{toml}: missing key {key!r} in [sweep]")
@@ -360,7 +361,7 @@ def _load_sidecar(toml: Path) -> Stack:
         data = tomllib.loads(toml.read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
         raise InputError(f"{toml}: cannot read it as TOML: {err}") from err
-    _check_keys(toml, data, _TOP_KEYS, "")
+    check_toml_keys(toml, data, _TOP_KEYS, "")
     kind = data.get("kind", "focal-stack")
     if kind not in KINDS:
         raise InputError(f"{toml}: kind must be one of {', '.join(KINDS)}, got {kind!r}")

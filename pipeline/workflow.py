@@ -37,7 +37,7 @@ from pipeline.errors import FlexdofError, InputError
 from pipeline.io import IMAGE_EXTENSIONS, WRITE_ENCODINGS
 from pipeline.ledger import LEDGER_NAME, Ledger, RunLock
 from pipeline.profiles import resolve_lens_path
-from pipeline.stack import load_stack, natural_key
+from pipeline.stack import check_toml_keys, load_stack, natural_key
 
 log = logging.getLogger(__name__)
 
@@ -121,12 +121,6 @@ def parse_interval(text: str, *, where: str = "interval") -> float:
     return seconds
 
 
-def _check_keys(path: Path, table: dict, known: Sequence[str], where: str) -> None:
-    for key in table:
-        if key not in known:
-            raise InputError(f"{path}: unknown key {key!r}{where} (known: {', '.join(known)})")
-
-
 def _table(path: Path, data: dict, key: str) -> dict:
     value = data.get(key, {})
     if not isinstance(value, dict):
@@ -149,7 +143,7 @@ def _typed(path: Path, where: str, key: str, value, kind):
 
 def _parse_options(path: Path, table: dict, where: str) -> dict:
     """Validate an options table (the ``flexdof stack`` flags); lens paths made absolute."""
-    _check_keys(path, table, _OPTION_KEYS, where)
+    check_toml_keys(path, table, _OPTION_KEYS, where)
     options: dict = {}
     for key, value in table.items():
         if key in ("lens", "method", "align"):
@@ -187,7 +181,7 @@ def _parse_input(path: Path, index: int, table: object) -> InputSpec:
     where = f" in [[inputs]] #{index + 1}"
     if not isinstance(table, dict):
         raise InputError(f"{path}: [[inputs]] #{index + 1} must be a table")
-    _check_keys(path, table, _INPUT_KEYS, where)
+    check_toml_keys(path, table, _INPUT_KEYS, where)
     given = [key for key in ("directories", "files") if key in table]
     if len(given) != 1:
         raise InputError(
@@ -254,7 +248,7 @@ def load_workflow(path: str | Path, *, overrides: dict | None = None) -> Workflo
         raise InputError(f"workflow {path}: cannot read it ({err.strerror or err})") from err
     except (UnicodeDecodeError, tomllib.TOMLDecodeError) as err:
         raise InputError(f"workflow {path}: not valid TOML: {err}") from err
-    _check_keys(path, data, _TOP_KEYS, "")
+    check_toml_keys(path, data, _TOP_KEYS, "")
     overrides = dict(overrides or {})
 
     tables = data.get("inputs")
@@ -270,7 +264,7 @@ def load_workflow(path: str | Path, *, overrides: dict | None = None) -> Workflo
     )
 
     output = _table(path, data, "output")
-    _check_keys(path, output, _OUTPUT_KEYS, " in [output]")
+    check_toml_keys(path, output, _OUTPUT_KEYS, " in [output]")
     if "directory" not in output:
         raise InputError(f"{path}: missing key 'directory' in [output] (where results go)")
     directory = _typed(path, " in [output]", "directory", output["directory"], str)
@@ -288,7 +282,7 @@ def load_workflow(path: str | Path, *, overrides: dict | None = None) -> Workflo
             )
 
     run = _table(path, data, "run")
-    _check_keys(path, run, _RUN_KEYS, " in [run]")
+    check_toml_keys(path, run, _RUN_KEYS, " in [run]")
     run.update({k: v for k, v in overrides.items() if k in _RUN_KEYS and v is not None})
     for key in ("concurrency", "threads_per_stack"):
         if key in run and _typed(path, " in [run]", key, run[key], int) < 1:
@@ -304,7 +298,7 @@ def load_workflow(path: str | Path, *, overrides: dict | None = None) -> Workflo
     retry = _typed(path, " in [run]", "retry_failed", run.get("retry_failed", False), bool)
 
     schedule = _table(path, data, "schedule")
-    _check_keys(path, schedule, _SCHEDULE_KEYS, " in [schedule]")
+    check_toml_keys(path, schedule, _SCHEDULE_KEYS, " in [schedule]")
     every = schedule.get("every")
     every_s = None if every is None else parse_interval(every, where=f"{path}: every in [schedule]")
     description = _typed(path, "", "description", data.get("description", ""), str)
