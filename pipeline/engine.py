@@ -309,8 +309,15 @@ def process_stack(
     t0 = time.perf_counter()
     blur_span = options.blur_span_px
     if needs_fit:
-        if n < 2 or np.ptp(positions) == 0:
-            raise InputError(f"{stack.base_dir}: one focus position only: nothing to sweep")
+        if n < 2:
+            raise InputError(
+                f"{stack.files[0]}: a focal stack needs at least two frames focused at different "
+                "depths (got one); for a single sweep capture use flexdof sweep"
+            )
+        if np.ptp(positions) == 0:
+            raise InputError(
+                f"{stack.base_dir}: all {n} frames have the same focus position: nothing to sweep"
+            )
         small, factor = _blur_fit_previews(previews, alignments, shape)
         blur_span = defocus.estimate_blur_span(small, positions, downscale=factor)
         log.info("estimated blur span: %.1f px across the stack", blur_span)

@@ -324,3 +324,10 @@ def test_progress_reports_every_frame(repo_root, tmp_path):
         counts = [done for s, done, total in seen if s == stage]
         assert set(counts) >= set(range(1, 9)) and max(counts) == 8
     assert [s for s, _, _ in seen][-1] == "deconvolve"
+
+
+def test_a_single_frame_is_a_clear_error(tmp_path, capsys):
+    write_image(tmp_path / "only.tif", np.full((32, 32), 0.5, np.float32), encoding="float32")
+    out = tmp_path / "out.tif"
+    code, err = run_cli(["stack", str(tmp_path / "only.tif"), "-o", str(out)], capsys)
+    assert_clean_failure(code, err, out, "only.tif", "at least two frames")
