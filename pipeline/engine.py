@@ -138,6 +138,10 @@ class _TaskProgress(Callback):
 @contextlib.contextmanager
 def scheduler_context(scheduler: str | None = None, threads: int | None = None):
     """Local threads (default) or a dask.distributed cluster at ``scheduler`` (tcp://...)."""
+    if threads is not None and (
+        isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
+    ):
+        raise InputError(f"--threads must be a whole number >= 1, got {threads!r}")
     if scheduler:
         from distributed import Client
 

@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import optics, psf
+from pipeline import psf
 from pipeline.commands import print_json
 from pipeline.errors import InputError
-from pipeline.motion import constant_speed
 from pipeline.profiles import load_lens
+from pipeline.sweep import profile_from_range
 
 
 def register(subparsers) -> None:
@@ -41,9 +41,8 @@ def register(subparsers) -> None:
 
 def run(args: argparse.Namespace) -> int:
     lens = load_lens(args.lens)
-    start = optics.image_distance(lens.focal_length_mm, args.far)
-    end = optics.image_distance(lens.focal_length_mm, args.near)
-    profile = constant_speed(start, (end - start) / args.exposure, args.exposure)
+    profile = profile_from_range(lens, args.near, args.far, args.exposure)
+    start, end = profile.start_mm, profile.end_mm
     kernel = psf.integrated_psf(
         lens, args.depth, profile, model=args.model, size=args.size, method=args.method
     )

@@ -1,0 +1,70 @@
+"""The `flexdof optics` and `flexdof psf` commands: output formats and one-line errors."""
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from pipeline import optics, psf
+from pipeline.cli import main
+from pipeline.io import read_frame
+from pipeline.motion import constant_speed
+from pipeline.profiles import load_lens
+
+
+def test_optics_prints_fig2_and_strict_json(capsys):
+    assert main(["optics"]) == 0
+    text = capsys.readouterr().out
+    assert "158.2 um" in text and "320.5 um" in text and "512.8 um" in text
+    assert main(["optics", "--near", "500", "--far", "inf", "--json"]) == 0
+    data = json.loads(capsys.readouterr().out)  # strict: no bare Infinity
+    row = data["rows"][0]
+    assert row["far_mm"] == "inf"
+    assert row["translation_um"] == pytest.approx(
+        optics.sweep_translation(12.5, 500, math.inf) * 1e3
+    )
+
+
+def test_psf_writes_the_kernel_and_the_fig3_plot(tmp_path, capsys):
+    npy, tif, png = tmp_path / "k.npy", tmp_path / "k.tif", tmp_path / "fig3.png"
+    assert main(["psf", "--depth", "900", "-o", str(npy), "--plot", str(png)]) == 0
+    assert main(["psf", "--depth", "900", "-o", str(tif), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out.split("\n", 1)[1])
+    lens = load_lens("fujinon-12.5mm-f1.4-sony-1-3in")
+    expected = psf.integrated_psf(lens, 900.0, constant_speed(12.5, 0.36 / 0.36, 0.36))
+    kernel = np.load(npy)
+    assert kernel.shape == expected.shape == (summary["size"], summary["size"])
+    assert np.allclose(kernel, expected, atol=1e-6)
+    assert np.allclose(read_frame(tif), kernel, atol=1e-7)
+    assert png.stat().st_size > 10_000
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["psf", "--depth", "10"], "focal length"),
+        (["psf", "--exposure", "0"], "exposure"),
+        (["psf", "-o", "kernel.bmp"], ".npy or .tif"),
+        (["optics", "--near", "500"], "--near and --far"),
+        (["optics", "--lens", "no-such-lens"], "no-such-lens"),
+    ],
+)
+def test_bad_arguments_give_one_line_errors(tmp_path, monkeypatch, capsys, args, needle):
+    monkeypatch.chdir(tmp_path)
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and needle in err, err
+    assert not list(tmp_path.iterdir())
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["--version"])
+    assert info.value.code == 0 and "flexdof" in capsys.readouterr().out
+
+
+def test_zero_threads_is_named(repo_root, tmp_path, capsys):
+    sample = str(repo_root / "stacks" / "motorcycle")
+    assert main(["stack", sample, "-o", str(tmp_path / "x.tif"), "--threads", "0"]) == 2
+    assert "--threads" in capsys.readouterr().err
