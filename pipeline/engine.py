@@ -159,7 +159,7 @@ def scheduler_context(scheduler: str | None = None, threads: int | None = None):
 # ----------------------------------------------------------------------------- positions
 def _resolve_lens(stack: Stack, options: StackOptions) -> Lens | None:
     if options.lens is not None:
-        return load_lens(options.lens, base_dir=stack.base_dir)
+        return load_lens(options.lens)  # a path given by the user: relative to the cwd
     return stack.lens_profile
 
 

@@ -1,6 +1,7 @@
 """The main job (Sec. 9) end to end on synthetic stacks rendered independently of the engine."""
 
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -331,3 +332,12 @@ def test_a_single_frame_is_a_clear_error(tmp_path, capsys):
     out = tmp_path / "out.tif"
     code, err = run_cli(["stack", str(tmp_path / "only.tif"), "-o", str(out)], capsys)
     assert_clean_failure(code, err, out, "only.tif", "at least two frames")
+
+
+def test_lens_option_path_is_relative_to_the_working_directory(good_stack, tmp_path, monkeypatch):
+    (tmp_path / "work").mkdir()
+    lens_text = Path(load_lens(LENS).source).read_text()
+    (tmp_path / "work" / "mine.toml").write_text(lens_text)
+    monkeypatch.chdir(tmp_path / "work")
+    assert main(["-q", "stack", str(good_stack), "-o", "out.tif", "--lens", "mine.toml"]) == 0
+    assert (tmp_path / "work" / "out.tif").is_file()
