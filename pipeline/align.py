@@ -184,16 +184,21 @@ def _implausible(h: np.ndarray, shape: tuple[int, int]) -> str:
 # --- matching images ----------------------------------------------------------------------------
 
 
-def _load(frame: np.ndarray | Callable[[], np.ndarray], index: int) -> np.ndarray:
-    a = np.asarray(frame() if callable(frame) else frame)
+def _checked_frame(frame, name: str) -> np.ndarray:
+    """``frame`` as an array, or an InputError naming it when it cannot be an image."""
+    a = np.asarray(frame)
     if a.ndim not in (2, 3) or a.size == 0 or not np.issubdtype(a.dtype, np.number):
         raise InputError(
-            f"frames[{index}] must be a non-empty numeric (rows, cols) or (rows, cols, channels) "
+            f"{name} must be a non-empty numeric (rows, cols) or (rows, cols, channels) "
             f"array, got shape {a.shape} dtype {a.dtype}"
         )
     if np.iscomplexobj(a):
-        raise InputError(f"frames[{index}] must be real-valued, got dtype {a.dtype}")
+        raise InputError(f"{name} must be real-valued, got dtype {a.dtype}")
     return a
+
+
+def _load(frame: np.ndarray | Callable[[], np.ndarray], index: int) -> np.ndarray:
+    return _checked_frame(frame() if callable(frame) else frame, f"frames[{index}]")
 
 
 def _grey(a: np.ndarray) -> np.ndarray:
@@ -609,14 +614,7 @@ def warp(
     to 1/32 px for float64 or more channels, so resampling runs on float32 groups
     of at most 4 channels (float32 rounding, ~6e-8 relative, is far smaller).
     """
-    a = np.asarray(frame)
-    if a.ndim not in (2, 3) or a.size == 0 or not np.issubdtype(a.dtype, np.number):
-        raise InputError(
-            f"frame must be a non-empty numeric (rows, cols) or (rows, cols, channels) array, "
-            f"got shape {a.shape} dtype {a.dtype}"
-        )
-    if np.iscomplexobj(a):
-        raise InputError(f"frame must be real-valued, got dtype {a.dtype}")
+    a = _checked_frame(frame, "frame")
     if len(shape) < 2 or int(shape[0]) < 1 or int(shape[1]) < 1:
         raise InputError(f"shape must start with (rows, cols) >= 1, got {shape!r}")
     inverse = np.linalg.inv(_as_homography(homography))

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import inspect
 import logging
 import math
 import tempfile
@@ -82,6 +83,11 @@ COLUMNS = (
 
 
 # ----------------------------------------------------------------------------- records
+def default_of(function, parameter: str):
+    """The default of a keyword parameter, read from the code (so the bench marks the real one)."""
+    return inspect.signature(function).parameters[parameter].default
+
+
 @dataclasses.dataclass(frozen=True)
 class Metric:
     """How an error metric is read: direction, unit and what counts as a clear difference.
@@ -430,18 +436,29 @@ def ipsf_rows(config: Config) -> list[Row]:
         return _Pending(build, finish)
 
     rows = [
-        measure("pixel-integration order (analytic)", f"{n} nodes", n == 8, theta_order=n)
+        measure(
+            "pixel-integration order (analytic)",
+            f"{n} nodes",
+            n == default_of(psf.integrated_psf, "theta_order"),
+            theta_order=n,
+        )
         for n in config.theta_orders
     ]
     rows += [
-        measure("time nodes (numeric Eq. 5)", f"{n} nodes", n == 6, method="numeric", time_order=n)
+        measure(
+            "time nodes (numeric Eq. 5)",
+            f"{n} nodes",
+            n == default_of(psf.integrated_psf, "time_order"),
+            method="numeric",
+            time_order=n,
+        )
         for n in config.time_orders
     ]
     rows += [
         measure(
             "time sub-interval (numeric Eq. 5)",
             f"{s:g} px",
-            s == 0.5,
+            s == default_of(psf.integrated_psf, "time_step_px"),
             method="numeric",
             time_step_px=s,
         )
@@ -492,7 +509,12 @@ def simulation_rows(config: Config, radiance: np.ndarray, depth: np.ndarray) -> 
 
         return _Pending(run, finish)
 
-    rows = [measure("layer tolerance", f"{t:g}", t == 1e-3, tolerance=t) for t in config.tolerances]
+    rows = [
+        measure(
+            "layer tolerance", f"{t:g}", t == default_of(simulate.plan, "tolerance"), tolerance=t
+        )
+        for t in config.tolerances
+    ]
     rows += [
         measure("occlusion", "auto (on: depth edges)", True),
         measure("occlusion", "off", False, occlusion=False),
@@ -537,7 +559,10 @@ def _alignment_rows(config: Config, prep: Prepared, work: Path) -> list[Row]:
     shape = check_frames(stack).shape
     truth = _homographies("analytic", 0, stack.files, prep.positions, shape)
     settings = [("none", "none", 0, False), ("analytic", "analytic", 0, False)]
-    settings += [(f"estimate @{s} px", "estimate", s, s == 768) for s in config.align_sides_px]
+    settings += [
+        (f"estimate @{s} px", "estimate", s, s == StackOptions.align_max_side_px)
+        for s in config.align_sides_px
+    ]
     pending = []
     for label, mode, side, default in settings:
         requires = "absolute focus positions" if mode == "analytic" else ""
@@ -622,11 +647,23 @@ def deconvolution_rows(config: Config, prep: Prepared) -> list[Row]:
         run("method", "sparse (50 it.)", False, method="sparse"),
     ]
     rows += [
-        run("rl iterations", f"{n}", n == 30, method="rl", iterations=n)
+        run(
+            "rl iterations",
+            f"{n}",
+            n == default_of(dc.richardson_lucy, "iterations"),
+            method="rl",
+            iterations=n,
+        )
         for n in config.rl_iterations
     ]
     rows += [
-        run("sparse iterations", f"{n}", n == 50, method="sparse", iterations=n)
+        run(
+            "sparse iterations",
+            f"{n}",
+            n == default_of(dc.sparse, "iterations"),
+            method="sparse",
+            iterations=n,
+        )
         for n in config.sparse_iterations
     ]
     rows += [
@@ -652,7 +689,9 @@ def deconvolution_rows(config: Config, prep: Prepared) -> list[Row]:
         )
         for n in sorted({engine.WIENER_EM_PASSES, 3})
     ]
-    rows += [run("tile size", f"{t} px", t == 1024, tile_px=t) for t in config.tiles_px]
+    rows += [
+        run("tile size", f"{t} px", t == StackOptions.tile_px, tile_px=t) for t in config.tiles_px
+    ]
     tile = min(config.tiles_px)
     depth = dc.plan(
         prep.average,
