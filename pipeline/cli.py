@@ -25,6 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        if info.name.startswith("_"):
+            continue  # helpers shared by commands (e.g. the progress display)
         importlib.import_module(f"{commands.__name__}.{info.name}").register(subparsers)
     return parser
 

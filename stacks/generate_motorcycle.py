@@ -15,7 +15,7 @@ as the skimage docstring gives it, is the full-resolution calibration divided by
 Steps:
 
 1. crop to 740 x 500 and downscale 2x (block mean) to 370 x 250: radiance is averaged
-   after sRGB linearisation (exact sRGB EOTF, :func:`pipeline.io.srgb_to_linear`); depth
+   after sRGB linearisation (exact sRGB EOTF, :func:`pipeline.core.colour.srgb_to_linear`); depth
    is averaged as inverse depth over the valid pixels of each block (NaN if none);
 2. map the real depth range monotonically onto 450-2000 mm, linearly in inverse depth
    (disparity is linear in inverse depth, so this is the scene seen by a closer camera with
@@ -25,7 +25,7 @@ Steps:
    ``1024 * 4.65 / 370 = 12.869 um`` (written to ``lens.toml``), so every blur in pixels
    is the real sensor's blur divided by 370/1024;
 4. render 8 frames focused uniformly in image distance from ``v(2000 mm)`` to
-   ``v(450 mm)`` with :func:`pipeline.simulate.render_focal_stack` at tolerance 1e-3 (its
+   ``v(450 mm)`` with :func:`pipeline.core.simulate.render_focal_stack` at tolerance 1e-3 (its
    plans decide layers, occlusion and magnification ``p_i / p_ref``, ``p_ref`` the mean
    position), with shot noise at 4000 e- per unit radiance and 3 e- read noise, seed 2011;
 5. write ``frame_NN.png`` (16-bit sRGB), ``stack.toml``, ``lens.toml``,
@@ -47,8 +47,10 @@ from skimage.transform import downscale_local_mean
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from pipeline import io, optics, profiles, simulate  # noqa: E402
-from pipeline.scene import Exposure, Scene  # noqa: E402
+from pipeline.core import colour, optics, simulate  # noqa: E402
+from pipeline.core.lens import Lens  # noqa: E402
+from pipeline.core.scene import Exposure, Scene  # noqa: E402
+from pipeline.io import profiles, write  # noqa: E402
 
 OUT = ROOT / "stacks" / "motorcycle"
 LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
@@ -64,7 +66,7 @@ def scene_arrays() -> tuple[np.ndarray, np.ndarray]:
     """Linear radiance (250, 370, 3) float32 and mapped depth (250, 370) mm (NaN: unknown)."""
     left, _right, disparity = data.stereo_motorcycle()
     left, disparity = left[:, :740], disparity[:, :740]
-    radiance = downscale_local_mean(io.srgb_to_linear(left / 255.0), (2, 2, 1))
+    radiance = downscale_local_mean(colour.srgb_to_linear(left / 255.0), (2, 2, 1))
     valid = np.isfinite(disparity)
     inv_depth = np.where(valid, (disparity + DOFFS_PX) / (BASELINE_MM * FOCAL_PX), 0.0)
     total = downscale_local_mean(inv_depth, (2, 2)) * 4
@@ -82,7 +84,7 @@ def main() -> int:
     radiance, depth = scene_arrays()
     rows, cols = depth.shape
     pitch_um = round(base.width_px * base.pixel_pitch_um / cols, 3)
-    lens = profiles.Lens(
+    lens = Lens(
         **{
             **{k: getattr(base, k) for k in base.__dataclass_fields__ if k != "source"},
             "name": f"{base.name}, resampled to {cols}x{rows} px",
@@ -121,7 +123,7 @@ def main() -> int:
     ]
     for i, (frame, pos) in enumerate(zip(frames, positions)):
         name = f"frame_{i:02d}.png"
-        io.write_image(OUT / name, frame, encoding="srgb16")
+        write.write_image(OUT / name, frame, encoding="srgb16")
         lines += ["", "[[frames]]", f'file = "{name}"', f"image_distance_mm = {pos:.6f}"]
     (OUT / "stack.toml").write_text("\n".join(lines) + "\n", encoding="utf-8")
     tifffile.imwrite(

@@ -14,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy import ndimage
 
-from pipeline.align import (
+from pipeline.core.align import (
     Alignment,
     analytic_alignment,
     compose,
@@ -337,7 +337,7 @@ def test_textureless_frame_falls_back(scene, caplog):
     good = [render(scene, similarity(s, 0, (0, 0), CENTRE), FRAME, OFFSET) for s in (1.02, 1.0)]
     flat = np.full(FRAME, 0.25, np.float32)
     far = render(scene, similarity(0.96, 0, (0, 0), CENTRE), FRAME, OFFSET)
-    with caplog.at_level(logging.WARNING, logger="pipeline.align"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.core.align"):
         al = estimate_alignment([good[0], good[1], flat, far], reference=1)
     assert not al[2].ok and "texture" in al[2].message
     np.testing.assert_array_equal(al[2].homography, al[1].homography)  # the anchor's
@@ -438,7 +438,7 @@ def test_alignment_is_a_plain_record():
 @pytest.mark.parametrize("small", [(150, 200), (173, 231)])
 def test_reduction_geometry_matches_cv2_resize(small):
     """The full-res <-> matching-copy map follows cv2.resize's pixel-centre convention."""
-    from pipeline.align import _scaling
+    from pipeline.core.align import _scaling
 
     x0, y0 = 313.3, 207.6
     yy, xx = np.mgrid[0:600, 0:800].astype(np.float64)
@@ -452,7 +452,7 @@ def test_reduction_geometry_matches_cv2_resize(small):
 
 
 def test_similarity_projection_keeps_the_image_centre():
-    from pipeline.align import _project
+    from pipeline.core.align import _project
 
     affine = np.array([[1.05, 0.02, 3.0], [-0.01, 0.97, -2.0], [0.0, 0.0, 1.0]])
     sim = _project(affine, "similarity", (300, 400))

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pipeline import applications as A
-from pipeline import cli, motion, optics, simulate
-from pipeline.profiles import load_lens
-from pipeline.scene import Camera
+from pipeline import cli
+from pipeline.core import motion, optics, simulate
+from pipeline.core.scene import Camera
+from pipeline.io.profiles import load_lens
+from pipeline.paper import applications as A
 
 
 def _sinusoid(freq: float, shape=(96, 96)) -> np.ndarray:

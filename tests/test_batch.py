@@ -18,9 +18,10 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.batch import BatchJob, run_batch
-from pipeline.engine import StackOptions
-from pipeline.io import read_frame, write_image
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image
+from pipeline.jobs.batch import BatchJob, run_batch
+from pipeline.jobs.options import StackOptions
 
 distributed = pytest.importorskip("distributed")
 
@@ -163,7 +164,8 @@ def local_reference(stacks, tmp_path_factory) -> dict[str, Path]:
 
 def test_local_batch_matches_single_stack_job(local_reference, stacks, tmp_path):
     """The batch wrapper changes nothing: same bytes as process_stack run directly."""
-    from pipeline.engine import process_stack, scheduler_context
+    from pipeline.jobs.stack import process_stack
+    from pipeline.parallel.scheduler import scheduler_context
 
     name = "synthetic-b"
     with scheduler_context(None, 1):

@@ -9,10 +9,13 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from pipeline import bench, profiles, psf
-from pipeline.bench import Row
 from pipeline.cli import main as cli_main
-from pipeline.motion import constant_speed
+from pipeline.core import psf
+from pipeline.core.motion import constant_speed
+from pipeline.io import profiles
+from pipeline.paper import bench
+from pipeline.paper.bench.pareto import Row, _groups
+from pipeline.paper.bench.scenes import REFERENCE_THETA_ORDER, SEC41_LENS
 
 
 def row(setting, value, time_s, *, default=False, metric="psnr_db", requires="", knob="k"):
@@ -79,9 +82,9 @@ def test_best_times_takes_the_minimum_and_keeps_results():
 
 def test_ipsf_reference_agrees_with_fine_numeric_quadrature():
     """The benchmark's reference kernel vs an independent route: Eq. 5 over time."""
-    lens = profiles.load_lens(bench.SEC41_LENS)
+    lens = profiles.load_lens(SEC41_LENS)
     sweep = constant_speed(12.5, 1.0, 0.36)
-    ref = psf.integrated_psf(lens, 750.0, sweep, theta_order=bench.REFERENCE_THETA_ORDER)
+    ref = psf.integrated_psf(lens, 750.0, sweep, theta_order=REFERENCE_THETA_ORDER)
     fine = psf.integrated_psf(lens, 750.0, sweep, method="numeric", time_order=8, time_step_px=0.1)
     assert np.abs(ref - fine).sum() < 1e-5
 
@@ -104,7 +107,7 @@ def test_quick_run_outputs_are_well_formed(quick_run):
     for r in rows:
         assert r.metric in bench.METRICS
         assert math.isfinite(r.value) and math.isfinite(r.time_s) and r.time_s > 0, r
-    for (knob, scene, metric), group in bench._groups(rows, ("knob", "scene", "metric")):
+    for (knob, scene, metric), group in _groups(rows, ("knob", "scene", "metric")):
         n_default = sum(r.is_default for r in group)
         expected = 0 if knob.startswith("frames over") else 1
         assert n_default == expected, (knob, scene, metric)

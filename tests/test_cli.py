@@ -6,11 +6,11 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import optics, psf
 from pipeline.cli import main
-from pipeline.io import read_frame
-from pipeline.motion import constant_speed
-from pipeline.profiles import load_lens
+from pipeline.core import optics, psf
+from pipeline.core.motion import constant_speed
+from pipeline.io.profiles import load_lens
+from pipeline.io.read import read_frame
 
 
 def test_optics_prints_fig2_and_strict_json(capsys):

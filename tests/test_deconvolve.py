@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 from scipy import ndimage, signal
 from skimage import data
 
-from pipeline import deconvolve as dc
+from pipeline.core import deconvolve as dc
 from pipeline.errors import InputError
 
 METHODS = ["wiener", "rl", "sparse"]
@@ -160,7 +160,7 @@ def _bright_blob_scene():
     return x
 
 
-@pytest.mark.parametrize("method", METHODS)
+@pytest.mark.parametrize("method", ["rl", "sparse"])
 def test_saturated_pixels_excluded(method):
     x = _bright_blob_scene()
     k = disk_kernel(3.5)
@@ -171,8 +171,9 @@ def test_saturated_pixels_excluded(method):
     assert np.all(np.isfinite(masked))
     err_naive = np.sqrt(np.mean((naive - x)[near] ** 2))
     err_masked = np.sqrt(np.mean((masked - x)[near] ** 2))
-    # RL/sparse drop clipped pixels from the data term; Wiener's EM fill converges slowly
-    assert err_masked < (0.9 if method == "wiener" else 0.7) * err_naive
+    # RL/sparse drop clipped pixels from the data term (Wiener is linear: the main job
+    # keeps its clipped pixels at least at their observed value, see test_tiling)
+    assert err_masked < 0.7 * err_naive
 
 
 # ----------------------------------------------------------------------------- invariants

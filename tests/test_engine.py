@@ -9,12 +9,16 @@ import tifffile
 from scipy.signal import fftconvolve
 from skimage import data
 
-from pipeline import optics, psf
 from pipeline.cli import main
-from pipeline.engine import StackOptions, process_stack, scheduler_context
-from pipeline.io import read_frame, srgb_to_linear, write_image
-from pipeline.profiles import load_lens
-from pipeline.quality import psnr
+from pipeline.core import optics, psf
+from pipeline.core.colour import srgb_to_linear
+from pipeline.core.quality import psnr
+from pipeline.io.profiles import load_lens
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image
+from pipeline.jobs.options import StackOptions
+from pipeline.jobs.stack import process_stack
+from pipeline.parallel.scheduler import scheduler_context
 
 LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 

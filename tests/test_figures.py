@@ -9,8 +9,10 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import cli, figures, optics, psf
-from pipeline.profiles import load_lens
+from pipeline import cli
+from pipeline.core import optics, psf, spectra
+from pipeline.io.profiles import load_lens
+from pipeline.paper import figures
 
 LENS = load_lens(figures.LENS)
 
@@ -54,8 +56,8 @@ def test_fig5_edof_ipsfs_are_alike_over_depth(matrices):
 
 def test_fig9_mtf_k2_keeps_more_high_frequencies():
     kernels = figures.fig9_kernels(LENS, size=61)
-    freq, m1 = psf.mtf(kernels["k1"])
-    _, m2 = psf.mtf(kernels["k2"])
+    freq, m1 = spectra.mtf(kernels["k1"])
+    _, m2 = spectra.mtf(kernels["k2"])
     high = (freq > 0.1) & (freq < 0.5)
     assert np.all(m2[high] > m1[high])
 

@@ -1,4 +1,4 @@
-"""pipeline.io: decoding to float32 linear light, encoding, atomic writes, bad files."""
+"""pipeline.io (read, write, probe, exif): decoding to linear light, encoding, bad files."""
 
 from __future__ import annotations
 
@@ -15,17 +15,12 @@ from hypothesis import strategies as st
 from PIL import Image
 from PIL.TiffImagePlugin import IFDRational
 
+from pipeline.core.colour import linear_to_srgb, srgb_to_linear
 from pipeline.errors import InputError
-from pipeline.io import (
-    frame_info,
-    linear_to_srgb,
-    read_exif,
-    read_frame,
-    srgb_to_linear,
-    subject_distance_mm,
-    write_image,
-    write_json,
-)
+from pipeline.io.exif import read_exif, subject_distance_mm
+from pipeline.io.probe import frame_info
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image, write_json
 
 
 def eotf(codes, top):

@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from pipeline import optics
+from pipeline.core import optics
 from pipeline.errors import InputError
 
 # Fig. 2, third column: detector translation in um.

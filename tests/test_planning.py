@@ -10,9 +10,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline import motion, optics
+from pipeline.core import motion, optics
 from pipeline.errors import InputError
-from pipeline.profiles import load_lens
+from pipeline.io.profiles import load_lens
 
 ROLLING = load_lens("fujinon-12.5mm-f1.4-micron-1-2.5in")
 GLOBAL = load_lens("fujinon-12.5mm-f1.4-sony-1-3in")

@@ -3,7 +3,7 @@
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.profiles import available_lenses, lens_to_toml, load_lens
+from pipeline.io.profiles import available_lenses, lens_to_toml, load_lens
 
 
 def test_paper_setups_ship():

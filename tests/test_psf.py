@@ -8,10 +8,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from scipy import integrate
 
-from pipeline import optics, psf
+from pipeline.core import optics, psf, spectra
+from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile, constant_speed
 from pipeline.errors import InputError
-from pipeline.motion import Profile, constant_speed
-from pipeline.profiles import Lens, load_lens
+from pipeline.io.profiles import load_lens
 
 DEPTHS = [450.0, 700.0, 1000.0, 1500.0, 2000.0]
 
@@ -175,8 +176,8 @@ def test_depth_invariance_fig5(lens, sweep):
     size = 61
     normal = [psf.lens_psf(lens, d, normal_p, size=size) for d in DEPTHS]
     edof = [psf.integrated_psf(lens, d, sweep, size=size) for d in DEPTHS]
-    d_normal = np.array([[psf.dissimilarity(a, b) for b in normal] for a in normal])
-    d_edof = np.array([[psf.dissimilarity(a, b) for b in edof] for a in edof])
+    d_normal = np.array([[spectra.dissimilarity(a, b) for b in normal] for a in normal])
+    d_edof = np.array([[spectra.dissimilarity(a, b) for b in edof] for a in edof])
     assert np.allclose(np.diag(d_normal), 0) and np.allclose(np.diag(d_edof), 0)
     off = ~np.eye(len(DEPTHS), dtype=bool)
     assert (
@@ -188,15 +189,15 @@ def test_depth_invariance_fig5(lens, sweep):
 def test_dissimilarity_is_symmetric_and_zero_on_itself(lens, sweep):
     k1 = psf.integrated_psf(lens, 500.0, sweep)
     k2 = psf.lens_psf(lens, 500.0, 12.6)
-    assert psf.dissimilarity(k1, k1) == 0.0
-    assert psf.dissimilarity(k1, k2) == pytest.approx(psf.dissimilarity(k2, k1))
-    assert psf.dissimilarity(k1, k2) > 0
+    assert spectra.dissimilarity(k1, k1) == 0.0
+    assert spectra.dissimilarity(k1, k2) == pytest.approx(spectra.dissimilarity(k2, k1))
+    assert spectra.dissimilarity(k1, k2) > 0
 
 
 def test_mtf_of_delta_is_flat_and_blur_lowers_it(lens, sweep):
-    freqs, flat = psf.mtf(np.ones((1, 1)))
+    freqs, flat = spectra.mtf(np.ones((1, 1)))
     assert np.allclose(flat, 1.0) and freqs[0] == 0 and freqs[-1] == 0.5
-    _, edof = psf.mtf(psf.integrated_psf(lens, 750.0, sweep))
+    _, edof = spectra.mtf(psf.integrated_psf(lens, 750.0, sweep))
     assert edof[0] == pytest.approx(1.0) and edof[-1] < 0.2
 
 

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from pipeline.core.quality import edge_points, edge_width, psnr
 from pipeline.errors import InputError
-from pipeline.quality import edge_points, edge_width, psnr
 
 
 def step_image(sigma, size=160, angle_deg=20.0):

@@ -8,10 +8,12 @@ the homographies the job reports).
 import numpy as np
 import pytest
 
-from pipeline import align
-from pipeline.engine import StackOptions, process_stack, scheduler_context
-from pipeline.io import read_frame
-from pipeline.quality import sharpness_against_frames
+from pipeline.core import align
+from pipeline.core.quality import sharpness_against_frames
+from pipeline.io.read import read_frame
+from pipeline.jobs.options import StackOptions
+from pipeline.jobs.stack import process_stack
+from pipeline.parallel.scheduler import scheduler_context
 
 pytestmark = pytest.mark.shared_data
 

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from pipeline import optics, psf, simulate
 from pipeline.cli import main as cli_main
+from pipeline.core import optics, psf, simulate
+from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile, constant_speed
+from pipeline.core.scene import Camera, Exposure, Scene
 from pipeline.errors import InputError
-from pipeline.motion import Profile, constant_speed
-from pipeline.profiles import Lens
-from pipeline.scene import Camera, Exposure, Scene
 
 # 12.5 mm f/1.4 with coarse 20 um pixels: blurs of a few pixels keep brute force cheap.
 LENS = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=64, height_px=48)
@@ -316,9 +316,9 @@ def test_planes_scene_and_focal_stack():
 
 def test_cli_explain(tmp_path, capsys):
     img = texture((20, 24), seed=12).astype(np.float32)
-    from pipeline import io
+    from pipeline.io import read, write
 
-    io.write_image(tmp_path / "scene.tif", img, encoding="float32")
+    write.write_image(tmp_path / "scene.tif", img, encoding="float32")
     depth = np.full(img.shape, 800.0)
     depth[0, 0] = np.nan
     np.save(tmp_path / "depth.npy", depth)
@@ -338,4 +338,4 @@ def test_cli_explain(tmp_path, capsys):
     assert cli_main([*args, "--missing-depth", "fill", "--explain", "-o", str(out)]) == 0
     text = capsys.readouterr().out
     assert "simulation plan" in text and "[skip ] magnification" in text
-    assert io.read_frame(out).shape == img.shape
+    assert read.read_frame(out).shape == img.shape

@@ -1,4 +1,4 @@
-"""pipeline.stack: loading stacks, stack.toml validation, frame checks, lazy reading."""
+"""pipeline.io.stackfile: loading stacks, stack.toml validation, frame checks, lazy reading."""
 
 from __future__ import annotations
 
@@ -12,9 +12,9 @@ from PIL import Image
 from PIL.TiffImagePlugin import IFDRational
 
 from pipeline.errors import InputError
-from pipeline.io import read_frame, write_image
-from pipeline.profiles import load_lens
-from pipeline.stack import (
+from pipeline.io.profiles import load_lens
+from pipeline.io.read import read_frame
+from pipeline.io.stackfile import (
     Frame,
     check_frames,
     image_distances_mm,
@@ -22,6 +22,7 @@ from pipeline.stack import (
     natural_key,
     sweep_profile,
 )
+from pipeline.io.write import write_image
 
 LENS = "fujinon-12.5mm-f1.4-sony-1-3in"  # f = 12.5 mm
 
@@ -193,7 +194,7 @@ def test_focus_distance_without_lens(tmp_path):
 def test_partial_is_accepted_with_warning(tmp_path, caplog):
     make_frames(tmp_path, ["a.png"])
     write_toml(tmp_path, 'partial = true\n[[frames]]\nfile = "a.png"\n')
-    with caplog.at_level(logging.WARNING, logger="pipeline.stack"):
+    with caplog.at_level(logging.WARNING, logger="pipeline.io.stackfile"):
         stack = load_stack(tmp_path)
     assert stack.partial
     assert "partial" in caplog.text and "interrupted" in caplog.text

@@ -6,12 +6,14 @@ import pytest
 from scipy.signal import fftconvolve
 from skimage import data
 
-from pipeline import optics, psf
 from pipeline.cli import main
-from pipeline.io import read_frame, srgb_to_linear, write_image
-from pipeline.profiles import load_lens
-from pipeline.quality import psnr
-from pipeline.sweep import profile_from_range
+from pipeline.core import optics, psf
+from pipeline.core.colour import srgb_to_linear
+from pipeline.core.quality import psnr
+from pipeline.io.profiles import load_lens
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image
+from pipeline.jobs.sweep import profile_from_range
 
 LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 NEAR, FAR, EXPOSURE = 600.0, 3000.0, 0.2

@@ -12,7 +12,7 @@ import usb.core
 
 from pipeline import cli
 from pipeline.errors import InputError, TetherError
-from pipeline.profiles import lens_to_toml, load_lens
+from pipeline.io.profiles import lens_to_toml, load_lens
 from pipeline.tether.camera import CapturedObject, EndStop
 from pipeline.tether.codes import OC, CanonOC, NikonOC
 from pipeline.tether.emulator import (

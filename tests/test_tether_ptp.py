@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from pipeline.motion import Profile
+from pipeline.core.motion import Profile
 from pipeline.tether import canon, nikon
 from pipeline.tether.codes import CanonEC, ContainerType, NikonEC, response_name
 from pipeline.tether.flows import drive_schedule, stack_toml_text

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from pipeline import deconvolve as dc
-from pipeline import psf
+from pipeline.core import deconvolve as dc
+from pipeline.core import psf
 from pipeline.errors import InputError
-from pipeline.tiling import deconvolve_tiled
+from pipeline.parallel.tiling import deconvolve_tiled
 
 
 def gaussian_kernel(sigma: float, half: int) -> np.ndarray:

@@ -10,9 +10,11 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipeline import cli, io, motion, optics
+from pipeline import cli
+from pipeline.core import motion, optics
+from pipeline.core.weights import constant_speed_weights, discontinuous_weights, row_weights
 from pipeline.errors import InputError
-from pipeline.weights import constant_speed_weights, discontinuous_weights, row_weights
+from pipeline.io import read, write
 
 positions_st = st.lists(
     st.sampled_from(np.round(np.linspace(12.5, 12.9, 41), 4).tolist()), min_size=1, max_size=12
@@ -148,7 +150,7 @@ def ramp_stack(tmp_path):
     positions = np.linspace(12.52, 12.84, 9)
     lines = ['lens = "fujinon-12.5mm-f1.4-sony-1-3in"', 'kind = "focal-stack"']
     for i, p in enumerate(positions):
-        io.write_image(tmp_path / f"f{i}.tif", np.full((24, 32), p - 12.5, np.float32),
+        write.write_image(tmp_path / f"f{i}.tif", np.full((24, 32), p - 12.5, np.float32),
                        encoding="float32")
         lines += ["[[frames]]", f'file = "f{i}.tif"', f"image_distance_mm = {float(p)!r}"]
     (tmp_path / "stack.toml").write_text("\n".join(lines) + "\n")
@@ -160,9 +162,9 @@ def test_dof_tilted_rows_focus_on_the_plane(ramp_stack):
     out = directory / "tilt.tif"
     assert cli.main([
         "dof", str(directory), "-o", str(out), "--tilt-deg", "50", "--at-mm", "750",
-        "--align", "none", "--encoding", "float32",
+        "--align", "none", "--float",
     ]) == 0
-    result = io.read_frame(out)
+    result = read.read_frame(out)
     # independent: each row's chief ray meets the plane u = U + Y tan(phi)
     lens_h = 768 * 4.65e-3
     y = (np.arange(24) - 11.5) * lens_h / 24
@@ -170,7 +172,7 @@ def test_dof_tilted_rows_focus_on_the_plane(ramp_stack):
     u = (big_u + y * k) / (1 + y * k / f)
     expected = f * u / (u - f) - 12.5
     np.testing.assert_allclose(result[:, 7], expected, atol=2e-6)
-    assert (directory / "tilt.json").is_file()
+    assert (directory / "tilt.tif.json").is_file()  # the same sidecar naming as stack
 
 
 def test_dof_rows_csv_and_in_focus(ramp_stack, tmp_path):
@@ -179,20 +181,20 @@ def test_dof_rows_csv_and_in_focus(ramp_stack, tmp_path):
     rows_csv.write_text("row,depth_mm\n0,600\n23,1200\n")
     out = directory / "rows.tif"
     assert cli.main(["dof", str(directory), "-o", str(out), "--rows", str(rows_csv),
-                     "--align", "none", "--encoding", "float32"]) == 0
+                     "--align", "none", "--float"]) == 0
     v = [optics.image_distance(12.5, d) for d in (600.0, 1200.0)]
     expected = np.interp(np.arange(24), [0, 23], v) - 12.5
-    np.testing.assert_allclose(io.read_frame(out)[:, 0], expected, atol=2e-6)
+    np.testing.assert_allclose(read.read_frame(out)[:, 0], expected, atol=2e-6)
 
     out2 = directory / "two.tif"
     assert cli.main(["dof", str(directory), "-o", str(out2), "--in-focus", "500:600",
                      "--in-focus", "2000:2000", "--fraction", "3", "--fraction", "1",
-                     "--align", "none", "--encoding", "float32"]) == 0
+                     "--align", "none", "--float"]) == 0
     lo, hi = (optics.image_distance(12.5, d) for d in (600.0, 500.0))
     pause = optics.image_distance(12.5, 2000.0)
     # mean position of the emulated motion: 3/4 sweeping [lo, hi], 1/4 paused
     expected_value = 0.75 * 0.5 * (lo + hi) + 0.25 * pause - 12.5
-    np.testing.assert_allclose(io.read_frame(out2), expected_value, atol=2e-6)
+    np.testing.assert_allclose(read.read_frame(out2), expected_value, atol=2e-6)
 
 
 def test_dof_errors(ramp_stack, capsys):

@@ -23,16 +23,12 @@ from test_batch import REAL_STACKS, copy_real_stack, make_synthetic_stack, sha25
 
 from pipeline.cli import main
 from pipeline.errors import InputError
-from pipeline.io import read_frame, write_image
-from pipeline.ledger import LEDGER_NAME, Ledger, RunLock
-from pipeline.workflow import (
-    load_workflow,
-    output_path,
-    parse_interval,
-    plan_stacks,
-    run_workflow,
-    safe_name,
-)
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image
+from pipeline.workflow.ledger import LEDGER_NAME, Ledger, RunLock
+from pipeline.workflow.plan import output_path, plan_stacks, safe_name
+from pipeline.workflow.run import run_workflow
+from pipeline.workflow.schema import load_workflow, parse_interval
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -380,7 +376,7 @@ def test_lock_is_released_by_a_dead_holder(tmp_path):
             sys.executable,
             "-c",
             (
-                "import sys, time; from pipeline.ledger import RunLock\n"
+                "import sys, time; from pipeline.workflow.ledger import RunLock\n"
                 f"with RunLock({str(tmp_path)!r}, 'test holder'):\n"
                 "    print('locked', flush=True); time.sleep(60)"
             ),

@@ -2,7 +2,8 @@
 
 :mod:`pipeline.cli` discovers the modules of this package; a module's
 ``register`` adds its parser(s) and sets ``func`` to a callable taking the
-parsed ``argparse.Namespace`` and returning an exit code.
+parsed ``argparse.Namespace`` and returning an exit code. Modules whose names start
+with ``_`` are helpers shared by the commands, not commands.
 """
 
 import json

@@ -32,7 +32,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline import bench
+    from pipeline.paper import bench
 
     start = time.perf_counter()
     rows = bench.run_accuracy(

@@ -48,7 +48,7 @@ def register(subparsers) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline import figures
+    from pipeline.paper import figures
 
     which = list(args.only or ([] if args.applications else figures.FIGURES))
     if args.applications:
@@ -65,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
 
 def write_applications(out_dir: Path, which) -> list[Path]:
     """Render the applications in ``which``; write one PNG each and ``applications.md``."""
-    from pipeline import applications
+    from pipeline.paper import applications
 
     builders = {
         "6": applications.edof_application,
@@ -87,7 +87,7 @@ def write_applications(out_dir: Path, which) -> list[Path]:
     text = out / "applications.md"
     text.write_text(
         "# The paper's applications on synthetic scenes\n\n"
-        "`detail` is `pipeline.applications.detail_transfer`: the band-passed image "
+        "`detail` is `pipeline.paper.applications.detail_transfer`: the band-passed image "
         "regressed on the sharp scene's band (after sub-pixel registration), 1 = as sharp "
         "as the scene, 0 = no detail. `noise` is the RMS of (noisy - noise-free) render.\n\n"
         + "\n".join(sections),
@@ -100,7 +100,7 @@ def write_applications(out_dir: Path, which) -> list[Path]:
 def _panels_png(app, path: Path) -> None:
     from matplotlib.figure import Figure
 
-    from pipeline.io import linear_to_srgb
+    from pipeline.core.colour import linear_to_srgb
 
     n = len(app.panels)
     rows, cols = next(iter(app.panels.values())).shape[:2]

@@ -5,9 +5,9 @@ from __future__ import annotations
 import argparse
 import math
 
-from pipeline import optics
 from pipeline.commands import print_json
-from pipeline.profiles import load_lens
+from pipeline.core import optics
+from pipeline.io.profiles import load_lens
 
 FIG2_RANGES = ((1000.0, math.inf), (500.0, math.inf), (200.0, 500.0))
 

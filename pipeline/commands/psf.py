@@ -8,11 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import psf
 from pipeline.commands import print_json
+from pipeline.core import psf
 from pipeline.errors import InputError
-from pipeline.profiles import load_lens
-from pipeline.sweep import profile_from_range
+from pipeline.io.profiles import load_lens
+from pipeline.jobs.sweep import profile_from_range
 
 
 def register(subparsers) -> None:
@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     if args.output is not None:
         save_kernel(args.output, kernel)
     if args.plot is not None:
-        from pipeline import figures
+        from pipeline.paper import figures
 
         figures.psf_vs_ipsf_figure(lens, profile, args.plot, model=args.model)
     summary = {
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
 
 def save_kernel(path: Path, kernel: np.ndarray) -> None:
     """Write a kernel as .npy (float64) or .tif (float32), atomically."""
-    from pipeline.io import write_image
+    from pipeline.io.write import write_image
 
     suffix = path.suffix.lower()
     if suffix == ".npy":

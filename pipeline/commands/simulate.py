@@ -8,10 +8,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import io, optics, profiles, simulate
+from pipeline.core import optics, simulate
+from pipeline.core.motion import Profile
+from pipeline.core.scene import Camera, Exposure, Scene
 from pipeline.errors import InputError
-from pipeline.motion import Profile
-from pipeline.scene import Camera, Exposure, Scene
+from pipeline.io import profiles, read, write
 
 log = logging.getLogger(__name__)
 
@@ -63,7 +64,7 @@ def _load_scene(path: Path, depth: Path | None, missing: str | None) -> Scene:
         depth_mm = np.load(depth)
     except (OSError, ValueError) as err:
         raise InputError(f"{depth}: cannot read the depth map as .npy: {err}") from err
-    return Scene.from_depth(io.read_frame(image_path), depth_mm, missing_depth=missing)
+    return Scene.from_depth(read.read_frame(image_path), depth_mm, missing_depth=missing)
 
 
 def _camera(args, lens) -> Camera:
@@ -100,6 +101,6 @@ def run(args: argparse.Namespace) -> int:
             continue
         image = simulate.render(scene, camera, plan_=plan, seed=args.seed)
         out = args.output or path.with_name(f"{path.stem}_simulated.tif")
-        io.write_image(out, image, encoding="float32")
+        write.write_image(out, image, encoding="float32")
         log.info("wrote %s", out)
     return 0

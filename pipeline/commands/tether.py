@@ -68,7 +68,7 @@ def _backend(args, *, bulb: bool = False):
 
 
 def _lens_name(args) -> str:
-    from pipeline.profiles import resolve_lens_path
+    from pipeline.io.profiles import resolve_lens_path
     from pipeline.tether.flows import DEFAULT_LENS
 
     name = args.lens or DEFAULT_LENS
@@ -112,8 +112,8 @@ def _stack(args) -> int:
 
 
 def _sweep(args) -> int:
-    from pipeline.motion import constant_speed
-    from pipeline.profiles import load_lens
+    from pipeline.core.motion import constant_speed
+    from pipeline.io.profiles import load_lens
     from pipeline.tether.flows import capture_sweep, connect, drive_schedule
 
     if args.steps < 1 or not (math.isfinite(args.exposure) and args.exposure > 0):
@@ -144,7 +144,7 @@ def _sweep(args) -> int:
 
 
 def _calibrate(args) -> int:
-    from pipeline.profiles import lens_to_toml, load_lens
+    from pipeline.io.profiles import lens_to_toml, load_lens
     from pipeline.tether.calibrate import calibrate_stack
     from pipeline.tether.flows import write_atomic
 

@@ -16,8 +16,9 @@ import time
 
 from pipeline.commands import print_json
 from pipeline.commands.stack import add_processing_options
-from pipeline.ledger import Ledger, LockedError
-from pipeline.workflow import RunSummary, load_workflow, parse_interval, run_every, run_workflow
+from pipeline.workflow.ledger import Ledger, LockedError
+from pipeline.workflow.run import RunSummary, run_every, run_workflow
+from pipeline.workflow.schema import load_workflow, parse_interval
 
 log = logging.getLogger(__name__)
 

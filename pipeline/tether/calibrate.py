@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.core.optics import image_distance
 from pipeline.errors import InputError
-from pipeline.optics import image_distance
 
 
 def estimate_scale(reference: np.ndarray, image: np.ndarray, *, max_side: int = 320) -> float:

@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.motion import Profile
 from pipeline.errors import InputError, TetherError
-from pipeline.motion import Profile
 from pipeline.tether.camera import DriveRefused, FocusCamera, camera_for
 from pipeline.tether.session import CameraBusy, PtpSession
 from pipeline.tether.transport import DeviceGone, UsbTransport, find_cameras

@@ -1,7 +1,7 @@
 """The emulated camera's scene: two textured depth planes rendered by the project simulator.
 
 :func:`render_frame` is the one entry point the emulator uses. It renders the
-scene with :func:`pipeline.simulate.render` for a static capture at the motor's
+scene with :func:`pipeline.core.simulate.render.render` for a static capture at the motor's
 image distance: defocus by the lens PSF (Eqs. 2-3), occlusion at the planes'
 boundary, and the magnification ``p / p_ref`` (Sec. 3, 9) that focusing by
 moving the lens relative to the detector causes (Sec. 8).
@@ -12,10 +12,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipeline.optics import image_distance
-from pipeline.profiles import Lens
-from pipeline.scene import Camera, Scene
-from pipeline.simulate import render
+from pipeline.core.lens import Lens
+from pipeline.core.optics import image_distance
+from pipeline.core.scene import Camera, Scene
+from pipeline.core.simulate.render import render
 
 # Sigma 30 mm f/1.4 on an APS-C sensor binned ~11x to 320x224 pixels (fast to render).
 LENS = Lens(

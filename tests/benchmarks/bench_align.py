@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline.align import estimate_alignment, warp
+from pipeline.core.align import estimate_alignment, warp
 
 DEFAULT = Path(__file__).resolve().parents[3] / "shared" / "data" / "focusstack-pcb" / "pcb10"
 

@@ -6,7 +6,7 @@ Run by hand (not in the test suite)::
 
 Builds a batch from downscaled copies of the real stacks in ../shared/data
 (pcb7, pcb10, beetle, amber; ``--copies`` of each), then times the same batch
-with :func:`pipeline.batch.run_batch` on
+with :func:`pipeline.jobs.batch.run_batch` on
 
 * the local threaded scheduler with 1 and 2 stacks in flight,
 * a ``LocalCluster`` on 127.0.0.1 with 1 and 2 single-threaded worker processes,
@@ -40,9 +40,9 @@ import numpy as np  # noqa: E402
 from distributed import LocalCluster  # noqa: E402
 from test_batch import REAL_STACKS, copy_real_stack  # noqa: E402
 
-from pipeline.batch import BatchJob, run_batch  # noqa: E402
-from pipeline.engine import StackOptions  # noqa: E402
-from pipeline.io import read_frame  # noqa: E402
+from pipeline.io.read import read_frame  # noqa: E402
+from pipeline.jobs.batch import BatchJob, run_batch  # noqa: E402
+from pipeline.jobs.options import StackOptions  # noqa: E402
 
 
 def build(root: Path, shared: Path, copies: int, width: int) -> list[tuple[str, Path]]:

@@ -12,10 +12,10 @@ import time
 import numpy as np
 from scipy import signal
 
-from pipeline import deconvolve as dc
-from pipeline import psf
-from pipeline.motion import constant_speed
-from pipeline.profiles import load_lens
+from pipeline.core import deconvolve as dc
+from pipeline.core import psf
+from pipeline.core.motion import constant_speed
+from pipeline.io.profiles import load_lens
 
 
 def pillbox(radius: float) -> np.ndarray:

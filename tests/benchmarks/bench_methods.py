@@ -23,9 +23,12 @@ sys.path.insert(0, str(TESTS))
 
 from test_engine import make_stack, positions_for  # noqa: E402  (the tests' renderer)
 
-from pipeline.engine import StackOptions, process_stack, scheduler_context  # noqa: E402
-from pipeline.io import read_frame, srgb_to_linear  # noqa: E402
-from pipeline.quality import psnr  # noqa: E402
+from pipeline.core.colour import srgb_to_linear  # noqa: E402
+from pipeline.core.quality import psnr  # noqa: E402
+from pipeline.io.read import read_frame  # noqa: E402
+from pipeline.jobs.options import StackOptions  # noqa: E402
+from pipeline.jobs.stack import process_stack  # noqa: E402
+from pipeline.parallel.scheduler import scheduler_context  # noqa: E402
 
 METHODS = ("wiener", "rl", "sparse")
 

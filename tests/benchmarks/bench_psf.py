@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from pipeline import psf
-from pipeline.motion import Profile, constant_speed
-from pipeline.profiles import load_lens
+from pipeline.core import psf
+from pipeline.core.motion import Profile, constant_speed
+from pipeline.io.profiles import load_lens
 
 
 def best_time(fn, repeat: int) -> tuple[float, np.ndarray]:

@@ -20,9 +20,10 @@ sys.path[:0] = [str(ROOT), str(ROOT / "stacks")]
 
 import generate_motorcycle  # noqa: E402
 
-from pipeline import optics, profiles, simulate  # noqa: E402
+from pipeline.core import optics, simulate  # noqa: E402
+from pipeline.core.scene import Camera, Scene  # noqa: E402
 from pipeline.errors import InputError  # noqa: E402
-from pipeline.scene import Camera, Scene  # noqa: E402
+from pipeline.io import profiles  # noqa: E402
 
 
 def timed(scene, camera, tolerance):

@@ -25,8 +25,11 @@ from pathlib import Path
 import dask
 import numpy as np
 
-from pipeline.engine import StackOptions, process_stack, scheduler_context
-from pipeline.io import read_frame, write_image
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image
+from pipeline.jobs.options import StackOptions
+from pipeline.jobs.stack import process_stack
+from pipeline.parallel.scheduler import scheduler_context
 
 DEFAULT = str(Path(__file__).resolve().parents[3] / "shared/data/focusstack-pcb/pcb7/pcb_*.jpg")
 

@@ -20,10 +20,13 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipeline import align
-from pipeline.engine import StackOptions, process_stack, scheduler_context
-from pipeline.io import linear_to_srgb, read_frame
-from pipeline.quality import sharpness_against_frames
+from pipeline.core import align
+from pipeline.core.colour import linear_to_srgb
+from pipeline.core.quality import sharpness_against_frames
+from pipeline.io.read import read_frame
+from pipeline.jobs.options import StackOptions
+from pipeline.jobs.stack import process_stack
+from pipeline.parallel.scheduler import scheduler_context
 
 SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
 STACKS = {

@@ -1,0 +1,638 @@
+"""Magnification (focus-breathing) compensation with homographies (Sec. 3, 9).
+
+Moving the detector (or the lens, Sec. 8) to change focus changes the
+magnification ``p/u`` of the imaging system (Sec. 3, footnote 1; Fig. 2's last
+column), so the frames of a focal stack do not overlay. Sec. 9 averages the
+frames "compensating for magnification effects if possible": this module
+estimates, for every frame, a homography ``H`` that maps the frame's full-
+resolution pixel coordinates to the reference frame's, and warps frames with it.
+
+Conventions
+-----------
+Pixel coordinates are OpenCV's: ``(x, y) = (column, row)`` with pixel centres at
+integer coordinates. A homography maps homogeneous column vectors,
+``[x', y', w']^T = H [x, y, 1]^T``, and is stored normalised to ``H[2, 2] = 1``.
+``Alignment.scale`` is the frame's magnification relative to the reference,
+``p_i / p_ref`` for a detector-moving focus, i.e. ``1 / scale_of(H)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from pipeline.errors import InputError
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "Alignment",
+    "analytic_alignment",
+    "compose",
+    "estimate_alignment",
+    "map_points",
+    "rescale_homography",
+    "scale_of",
+    "warp",
+]
+
+_MODELS = {
+    "homography": cv2.MOTION_HOMOGRAPHY,
+    "affine": cv2.MOTION_AFFINE,
+    "similarity": cv2.MOTION_AFFINE,  # ECC has no similarity model: fit affine, then project
+}
+_METHODS = ("auto", "ecc", "features")
+_SCALE_RANGE = (0.5, 2.0)  # plausible magnification between two frames of one stack
+_MAX_PERSPECTIVE = 0.05  # max |w - 1| of the homogeneous coordinate over the image
+_COARSEST_SIDE_PX = 96  # the pyramid stops before its shorter side drops below this
+_ECC_GAUSS_SIZE = 5
+_FEATURES_MAX = 4000
+
+
+@dataclass(frozen=True, eq=False)
+class Alignment:
+    """The transform of one frame onto the reference frame.
+
+    Attributes
+    ----------
+    homography : ndarray, shape (3, 3), float64
+        Maps the frame's full-resolution pixel coordinates to the reference's
+        (``H[2, 2] = 1``); pass it to :func:`warp`.
+    scale : float
+        The frame's magnification relative to the reference, ``1 / scale_of(H)``
+        (``p_i / p_ref`` for a detector-moving focus, Fig. 1).
+    method : str
+        ``"reference"``, ``"ecc"``, ``"features"``, ``"features+ecc"``, ``"analytic"``
+        or ``"fallback"``.
+    ok : bool
+        False when the estimate failed and ``homography`` is a fallback.
+    message : str
+        Why the estimate failed (empty when ``ok``).
+    correlation : float or None
+        ECC correlation coefficient of the frame with its anchor on their overlap
+        at the matching resolution (None when not measured).
+    """
+
+    homography: np.ndarray
+    scale: float
+    method: str
+    ok: bool = True
+    message: str = ""
+    correlation: float | None = None
+
+
+class _EstimationError(Exception):
+    """An estimate failed; the message says why (turned into ``Alignment.message``)."""
+
+
+# --- homography helpers -------------------------------------------------------------------------
+
+
+def _as_homography(h: np.ndarray, name: str = "homography") -> np.ndarray:
+    """Validate ``h`` and return it as float64 3x3 normalised to ``h[2, 2] = 1``."""
+    m = np.asarray(h, dtype=np.float64)
+    if m.shape == (2, 3):
+        m = np.vstack([m, [0.0, 0.0, 1.0]])
+    if m.shape != (3, 3):
+        raise InputError(f"{name} must be a 3x3 (or 2x3 affine) matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)) or m[2, 2] == 0.0:
+        raise InputError(f"{name} must be finite with h[2, 2] != 0, got {m.tolist()}")
+    m = m / m[2, 2]
+    if abs(np.linalg.det(m)) < 1e-12:
+        raise InputError(f"{name} is singular (det ~ 0): {m.tolist()}")
+    return m
+
+
+def scale_of(h: np.ndarray) -> float:
+    """Linear scale factor of the map ``h``: ``sqrt(|det h[:2, :2]|)`` with ``h[2, 2] = 1``.
+
+    For a pure scaling by ``s`` about any point this is ``s``. The magnification
+    of a frame relative to the reference is ``1 / scale_of(alignment.homography)``.
+    """
+    m = _as_homography(h)
+    return float(math.sqrt(abs(np.linalg.det(m[:2, :2]))))
+
+
+def compose(*homographies: np.ndarray) -> np.ndarray:
+    """Product ``h1 @ h2 @ ... @ hn`` (``hn`` applied first), normalised to ``[2, 2] = 1``.
+
+    ``compose(h_j, h_ij)`` maps frame i to the reference when ``h_ij`` maps
+    frame i to frame j and ``h_j`` maps frame j to the reference.
+    """
+    if not homographies:
+        raise InputError("compose needs at least one homography, got none")
+    out = np.eye(3)
+    for k, h in enumerate(homographies):
+        out = out @ _as_homography(h, f"homographies[{k}]")
+    return out / out[2, 2]
+
+
+def map_points(h: np.ndarray, points_xy: np.ndarray) -> np.ndarray:
+    """Apply ``h`` to points of shape (..., 2) given as (x, y); returns float64 (..., 2)."""
+    m = _as_homography(h)
+    p = np.asarray(points_xy, dtype=np.float64)
+    if p.shape[-1:] != (2,):
+        raise InputError(f"points_xy must have shape (..., 2), got {p.shape}")
+    q = p @ m[:, :2].T + m[:, 2]
+    return q[..., :2] / q[..., 2:]
+
+
+def _scaling(from_shape: tuple[int, int], to_shape: tuple[int, int]) -> np.ndarray:
+    """Map pixel coordinates of an image to those of its resized copy (cv2.resize's geometry).
+
+    A resize by ``s = to / from`` maps pixel *edges* ``x + 1/2`` to ``s (x + 1/2)``; with
+    pixel centres at integers, ``x' = s (x + 1/2) - 1/2``.
+    """
+    sy = to_shape[0] / from_shape[0]
+    sx = to_shape[1] / from_shape[1]
+    return np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])
+
+
+def rescale_homography(
+    h: np.ndarray, from_shape: tuple[int, int], to_shape: tuple[int, int]
+) -> np.ndarray:
+    """Express ``h`` (acting on pixels of ``from_shape`` images) on ``to_shape`` pixels."""
+    s = _scaling(from_shape, to_shape)
+    out = s @ h @ np.linalg.inv(s)
+    return out / out[2, 2]
+
+
+def _implausible(h: np.ndarray, shape: tuple[int, int]) -> str:
+    """Why ``h`` cannot be a focus-breathing transform of a ``shape`` frame ('' if plausible)."""
+    if not np.all(np.isfinite(h)):
+        return "non-finite homography"
+    m = h / h[2, 2]
+    det = float(np.linalg.det(m[:2, :2]))
+    if det <= 0:
+        return f"degenerate or mirroring homography (det of linear part {det:.3g})"
+    s = math.sqrt(det)
+    if not _SCALE_RANGE[0] <= s <= _SCALE_RANGE[1]:
+        return f"implausible scale {s:.3f} (outside {_SCALE_RANGE[0]}..{_SCALE_RANGE[1]})"
+    rows, cols = shape
+    corners = np.array([[0, 0], [cols - 1, 0], [0, rows - 1], [cols - 1, rows - 1]], float)
+    w = corners @ m[2, :2] + 1.0
+    if np.max(np.abs(w - 1.0)) > _MAX_PERSPECTIVE:
+        return f"strong perspective terms (|w - 1| up to {np.max(np.abs(w - 1.0)):.3f})"
+    return ""
+
+
+# --- matching images ----------------------------------------------------------------------------
+
+
+def _checked_frame(frame, name: str) -> np.ndarray:
+    """``frame`` as an array, or an InputError naming it when it cannot be an image."""
+    a = np.asarray(frame)
+    if a.ndim not in (2, 3) or a.size == 0 or not np.issubdtype(a.dtype, np.number):
+        raise InputError(
+            f"{name} must be a non-empty numeric (rows, cols) or (rows, cols, channels) "
+            f"array, got shape {a.shape} dtype {a.dtype}"
+        )
+    if np.iscomplexobj(a):
+        raise InputError(f"{name} must be real-valued, got dtype {a.dtype}")
+    return a
+
+
+def _load(frame: np.ndarray | Callable[[], np.ndarray], index: int) -> np.ndarray:
+    return _checked_frame(frame() if callable(frame) else frame, f"frames[{index}]")
+
+
+def _grey(a: np.ndarray) -> np.ndarray:
+    x = a.astype(np.float32, copy=False)
+    if x.ndim == 2:
+        return x
+    if x.shape[2] == 3:
+        return cv2.cvtColor(np.ascontiguousarray(x), cv2.COLOR_RGB2GRAY)
+    return x.mean(axis=2, dtype=np.float32)
+
+
+def _matching_image(a: np.ndarray, max_side_px: int) -> np.ndarray:
+    """Reduced grey copy of a frame for matching, still in linear light.
+
+    Defocus is a convolution in linear light (Eqs. 3-5), so a sharp frame and a
+    defocused one correlate best at the true alignment only while both stay
+    linear: a gamma or log encoding, or a division by the local contrast, moves
+    the apparent position of blurred edges and biases the estimated scale (so
+    does any filter fixed in pixels, such as a local-mean high-pass, because the
+    frames differ in scale). ECC's correlation is invariant to a global gain and
+    offset, so no photometric normalisation is needed.
+    """
+    g = _grey(a)
+    rows, cols = g.shape
+    s = max_side_px / max(rows, cols)
+    if s < 1:
+        size = (max(round(cols * s), 1), max(round(rows * s), 1))
+        g = cv2.resize(g, size, interpolation=cv2.INTER_AREA)
+    return g
+
+
+def _pyramid(img: np.ndarray) -> list[np.ndarray]:
+    """Coarse-to-fine list of ``img`` halved (cv2.resize, INTER_AREA) down to ~96 px."""
+    levels = [img]
+    while min(levels[-1].shape) // 2 >= _COARSEST_SIDE_PX:
+        top = levels[-1]
+        size = (top.shape[1] // 2, top.shape[0] // 2)
+        levels.append(cv2.resize(top, size, interpolation=cv2.INTER_AREA))
+    return levels[::-1]
+
+
+def _is_textureless(img: np.ndarray) -> bool:
+    """Constant up to rounding (relative to the level; noise is caught by the correlation)."""
+    return float(np.std(img)) <= 1e-5 * float(np.mean(np.abs(img)))
+
+
+# --- estimators (reduced resolution, template -> input coordinates) ----------------------------
+
+
+def _project(w: np.ndarray, model: str, shape: tuple[int, int]) -> np.ndarray:
+    """Constrain a 3x3 warp to ``model``.
+
+    Similarity: the rotation+scaling nearest (Frobenius norm) to the linear
+    part, with the translation chosen so the image centre maps as before.
+    """
+    m = w / w[2, 2]
+    if model == "homography":
+        return m
+    out = np.eye(3)
+    out[:2] = m[:2]
+    if model == "similarity":
+        a = 0.5 * (out[0, 0] + out[1, 1])
+        b = 0.5 * (out[1, 0] - out[0, 1])
+        centre = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+        target = out[:2, :2] @ centre + out[:2, 2]
+        out[:2, :2] = [[a, -b], [b, a]]
+        out[:2, 2] = target - out[:2, :2] @ centre
+    return out
+
+
+def _ecc(
+    template: list[np.ndarray],
+    image: list[np.ndarray],
+    init: np.ndarray,
+    model: str,
+    start_level: int = 0,
+) -> tuple[np.ndarray, float]:
+    """Coarse-to-fine ECC (OpenCV ``findTransformECC``) from ``init`` (finest-level coords).
+
+    Returns the warp (template pixel coords -> image pixel coords at the finest
+    level) and the final correlation coefficient.
+    """
+    finest = template[-1].shape
+    w = rescale_homography(init, finest, template[start_level].shape)
+    cc = -1.0
+    for level in range(start_level, len(template)):
+        t, m = template[level], image[level]
+        if level > start_level:
+            w = rescale_homography(w, template[level - 1].shape, t.shape)
+        iterations = 100 if level == 0 else (12 if level == len(template) - 1 else 30)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-5)
+        warp32 = (w if model == "homography" else w[:2]).astype(np.float32)
+        try:
+            cc, warp32 = cv2.findTransformECC(
+                t, m, warp32, _MODELS[model], criteria, None, _ECC_GAUSS_SIZE
+            )
+        except cv2.error as err:
+            raise _EstimationError(f"ECC failed at pyramid level {level}: {err.err}") from err
+        w = np.eye(3)
+        w[: warp32.shape[0]] = warp32
+        w = _project(w, model, t.shape)
+    return w, float(cc)
+
+
+def _features(img: np.ndarray) -> tuple[list, np.ndarray | None]:
+    """SIFT keypoints and descriptors of a matching image."""
+    lo, hi = np.percentile(img, [0.5, 99.5])
+    gain = 255.0 / max(hi - lo, 1e-12)
+    u8 = cv2.convertScaleAbs(img, alpha=gain, beta=-lo * gain)
+    sift = cv2.SIFT_create(nfeatures=_FEATURES_MAX)
+    return sift.detectAndCompute(u8, None)
+
+
+def _feature_warp(fa: tuple, fb: tuple, model: str) -> np.ndarray:
+    """RANSAC fit (template a -> image b) to ratio-tested SIFT matches."""
+    (ka, da), (kb, db) = fa, fb
+    if da is None or db is None or len(ka) < 8 or len(kb) < 8:
+        raise _EstimationError("too few features (low texture)")
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(da, db, k=2)
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < 0.75 * p[1].distance]
+    if len(good) < 8:
+        raise _EstimationError(f"too few feature matches ({len(good)})")
+    src = np.float32([ka[g.queryIdx].pt for g in good])
+    dst = np.float32([kb[g.trainIdx].pt for g in good])
+    try:
+        if model == "homography":
+            h, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 1.5)
+        elif model == "affine":
+            h, inliers = cv2.estimateAffine2D(src, dst, ransacReprojThreshold=1.5)
+        else:
+            h, inliers = cv2.estimateAffinePartial2D(src, dst, ransacReprojThreshold=1.5)
+    except cv2.error as err:
+        raise _EstimationError(f"RANSAC failed: {err.err}") from err
+    if h is None or inliers is None or int(inliers.sum()) < 8:
+        raise _EstimationError("RANSAC found no consistent transform")
+    w = np.eye(3)
+    w[: h.shape[0]] = h
+    return w / w[2, 2]
+
+
+def _correlation(template: np.ndarray, image: np.ndarray, w: np.ndarray) -> float:
+    """ECC correlation of ``template`` with ``image`` warped by ``w`` on their overlap."""
+    size = (template.shape[1], template.shape[0])
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    warped = cv2.warpPerspective(image, w, size, flags=flags)
+    inside = cv2.warpPerspective(
+        np.ones_like(image, np.uint8), w, size, flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    )
+    if int(inside.sum()) < 0.25 * inside.size:
+        return -1.0
+    return float(cv2.computeECC(template, warped, inside))
+
+
+# --- public API ---------------------------------------------------------------------------------
+
+
+def estimate_alignment(
+    frames: Sequence[np.ndarray | Callable[[], np.ndarray]],
+    *,
+    reference: int | None = None,
+    model: str = "homography",
+    max_side_px: int = 768,
+    chain: bool = True,
+    method: str = "auto",
+    min_correlation: float = 0.5,
+    fallback: Sequence[Alignment] | None = None,
+) -> list[Alignment]:
+    """Homographies that map every frame of a focal stack onto the reference frame (Sec. 9).
+
+    Parameters
+    ----------
+    frames : sequence of ndarray or of zero-argument callables returning one
+        Frames (rows, cols) or (rows, cols, channels), linear light, all the same
+        size. Callables are called once each, so a caller can load lazily; only a
+        reduced grey copy of each frame is kept.
+    reference : int, optional
+        Index of the reference frame; default the middle one, ``len(frames) // 2``.
+    model : {"homography", "similarity", "affine"}
+        Motion model. Focus breathing is a scaling about the optical centre
+        (Fig. 1); "homography" also absorbs small tilts of a handheld or
+        refocusing camera.
+    max_side_px : int
+        Longest side of the matching copy (the full-resolution result is exact
+        conjugation of the reduced estimate, not a rounding of it).
+    chain : bool
+        Match each frame with its neighbour towards the reference and compose
+        (defocus differs much less between neighbours than across the stack);
+        False matches every frame with the reference directly.
+    method : {"auto", "ecc", "features"}
+        "ecc": coarse-to-fine ECC (``cv2.findTransformECC``) from the identity.
+        "features": SIFT + RANSAC, refined by ECC at the finest level. "auto":
+        ECC, and if it fails or correlates below ``min_correlation``, features;
+        the better of the two by ECC correlation on the overlap wins.
+    min_correlation : float
+        Minimum ECC correlation (on the matching copies) of an accepted estimate.
+    fallback : sequence of Alignment, optional
+        Per-frame transforms to use where estimation fails (e.g. from
+        :func:`analytic_alignment`); default the anchor's (neighbour's) transform.
+
+    Returns
+    -------
+    list of Alignment
+        One per frame; failed frames carry ``ok=False``, the reason in
+        ``message`` (also logged as a warning) and a finite fallback homography.
+
+    Notes
+    -----
+    With chaining, a frame that fails does not become an anchor: the next frame
+    outwards is matched with the last frame that succeeded.
+    """
+    n = len(frames)
+    if n == 0:
+        raise InputError("frames is empty; pass at least one frame")
+    if model not in _MODELS:
+        raise InputError(f"model must be one of {sorted(_MODELS)}, got {model!r}")
+    if method not in _METHODS:
+        raise InputError(f"method must be one of {list(_METHODS)}, got {method!r}")
+    if not isinstance(max_side_px, int | np.integer) or max_side_px < 2 * _COARSEST_SIDE_PX:
+        raise InputError(
+            f"max_side_px must be an int >= {2 * _COARSEST_SIDE_PX}, got {max_side_px!r}"
+        )
+    ref = n // 2 if reference is None else reference
+    if not isinstance(ref, int | np.integer) or not 0 <= ref < n:
+        raise InputError(f"reference must be a frame index in 0..{n - 1}, got {reference!r}")
+    if fallback is not None and len(fallback) != n:
+        raise InputError(f"fallback must have one Alignment per frame ({n}), got {len(fallback)}")
+
+    full_shape: tuple[int, int] | None = None
+    pyramids = []
+    for i, frame in enumerate(frames):
+        a = _load(frame, i)
+        if full_shape is None:
+            full_shape = a.shape[:2]
+        elif a.shape[:2] != full_shape:
+            raise InputError(
+                f"frames[{i}] has size {a.shape[:2]} but frames[0] has {full_shape}; "
+                "all frames of a stack must have the same size (crop or resize them first)"
+            )
+        img = _matching_image(a, max_side_px)
+        del a
+        if not np.all(np.isfinite(img)):
+            raise InputError(f"frames[{i}] contains NaN or infinite values; fix or drop the frame")
+        pyramids.append(_pyramid(img))
+    assert full_shape is not None
+    reduced = pyramids[0][-1].shape
+
+    features: dict[int, tuple] = {}
+
+    def feats(k: int) -> tuple:
+        if k not in features:
+            features[k] = _features(pyramids[k][-1])
+        return features[k]
+
+    def match(i: int, j: int) -> tuple[np.ndarray, float, str]:
+        """Warp frame i -> frame j (reduced coordinates), its correlation and the method."""
+        ti, tj = pyramids[i], pyramids[j]
+        if _is_textureless(ti[-1]):
+            raise _EstimationError(f"frame {i} has no texture to match")
+        if _is_textureless(tj[-1]):
+            raise _EstimationError(f"frame {j} has no texture to match")
+        candidates: list[tuple[float, np.ndarray, str]] = []
+        reasons = []
+        if method in ("auto", "ecc"):
+            try:
+                w, cc = _ecc(ti, tj, np.eye(3), model)
+                candidates.append((cc, w, "ecc"))
+            except _EstimationError as err:
+                reasons.append(str(err))
+        good = [
+            c for c in candidates if c[0] >= min_correlation and not _implausible(c[1], reduced)
+        ]
+        if method == "features" or (method == "auto" and not good):
+            try:
+                w = _project(_feature_warp(feats(i), feats(j), model), model, reduced)
+                candidates.append((_correlation(ti[-1], tj[-1], w), w, "features"))
+                w2, cc2 = _ecc(ti, tj, w, model, start_level=len(ti) - 1)
+                candidates.append((cc2, w2, "features+ecc"))
+            except _EstimationError as err:
+                reasons.append(str(err))
+        for cc, w, how in sorted(candidates, key=lambda c: -c[0]):
+            why = _implausible(w, reduced)
+            if why:
+                reasons.append(f"{how}: {why}")
+            elif cc < min_correlation:
+                reasons.append(f"{how}: correlation {cc:.3f} < min_correlation {min_correlation}")
+            else:
+                return w, cc, how
+        raise _EstimationError("; ".join(reasons) or "no estimate")
+
+    out: list[Alignment | None] = [None] * n
+    out[ref] = Alignment(np.eye(3), 1.0, "reference", True, "", 1.0)
+    for side in (range(ref - 1, -1, -1), range(ref + 1, n)):
+        anchor = ref
+        for i in side:
+            try:
+                w, cc, how = match(i, anchor)
+                h = compose(out[anchor].homography, rescale_homography(w, reduced, full_shape))
+                why = _implausible(h, full_shape)
+                if why:
+                    raise _EstimationError(f"composed transform: {why}")
+            except _EstimationError as err:
+                base = fallback[i] if fallback is not None else out[anchor]
+                hint = "the given fallback" if fallback is not None else f"frame {anchor}'s"
+                logger.warning(
+                    "alignment of frame %d to frame %d failed (%s); using %s transform",
+                    i,
+                    anchor,
+                    err,
+                    hint,
+                )
+                h = _as_homography(base.homography)
+                out[i] = Alignment(h, 1.0 / scale_of(h), "fallback", False, str(err), None)
+                continue
+            out[i] = Alignment(h, 1.0 / scale_of(h), how, True, "", cc)
+            if chain:
+                anchor = i
+    return out  # type: ignore[return-value]
+
+
+def analytic_alignment(
+    image_distances_mm: Sequence[float],
+    shape: tuple[int, ...],
+    *,
+    reference: int | None = None,
+    centre: tuple[float, float] | None = None,
+) -> list[Alignment]:
+    """Pure scalings about the optical centre predicted from the focus positions (Fig. 1).
+
+    Parameters
+    ----------
+    image_distances_mm : sequence of float
+        Focus position ``p_i`` (lens-to-detector distance, mm) of every frame.
+    shape : tuple
+        Frame shape; only (rows, cols) is used.
+    reference : int, optional
+        Index of the reference frame; default ``len // 2``.
+    centre : (x, y), optional
+        Optical centre in pixels; default the image centre ``((cols-1)/2, (rows-1)/2)``.
+
+    Returns
+    -------
+    list of Alignment
+        ``H_i`` scales by ``p_ref / p_i`` about ``centre``; ``scale = p_i / p_ref``.
+
+    Notes
+    -----
+    In Fig. 1 the chief ray through the lens centre is undeviated, so a scene
+    point at lateral offset ``X`` and distance ``u`` images (in focus or as the
+    centre ``m'`` of its blur circle) at radius ``r = p X / u`` on a detector at
+    distance ``p``: the magnification is ``p / u`` (footnote 1). For the same
+    scene ``r_i / r_ref = p_i / p_ref``, so frame i maps to the reference by a
+    scaling of ``p_ref / p_i`` about the optical centre. With a moving lens
+    (Sec. 8) ``u`` changes by the same small step, neglected here.
+    """
+    p = np.asarray(image_distances_mm, dtype=np.float64).ravel()
+    if p.size == 0 or not np.all(np.isfinite(p)) or np.any(p <= 0):
+        raise InputError(
+            "image_distances_mm must be finite and > 0 (mm from the lens to the detector), "
+            f"got {p.tolist()}"
+        )
+    if len(shape) < 2 or shape[0] < 1 or shape[1] < 1:
+        raise InputError(f"shape must start with (rows, cols) >= 1, got {shape!r}")
+    n = p.size
+    ref = n // 2 if reference is None else reference
+    if not isinstance(ref, int | np.integer) or not 0 <= ref < n:
+        raise InputError(f"reference must be a frame index in 0..{n - 1}, got {reference!r}")
+    cx, cy = ((shape[1] - 1) / 2, (shape[0] - 1) / 2) if centre is None else centre
+    out = []
+    for i, p_i in enumerate(p):
+        s = p[ref] / p_i
+        h = np.array([[s, 0.0, cx * (1 - s)], [0.0, s, cy * (1 - s)], [0.0, 0.0, 1.0]])
+        out.append(Alignment(h, float(p_i / p[ref]), "reference" if i == ref else "analytic"))
+    return out
+
+
+def warp(
+    frame: np.ndarray,
+    homography: np.ndarray,
+    shape: tuple[int, ...],
+    *,
+    return_coverage: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Resample ``frame`` onto the reference grid: ``out(H x) = frame(x)``.
+
+    Parameters
+    ----------
+    frame : ndarray, (rows, cols) or (rows, cols, channels)
+        float32 stays float32; other dtypes return float64 (resampled in float32,
+        see Notes).
+    homography : ndarray, (3, 3)
+        Frame pixel coordinates -> reference pixel coordinates (``Alignment.homography``).
+    shape : tuple
+        Output (rows, cols[, ...]); only the first two entries are used.
+    return_coverage : bool
+        Also return a float32 (rows, cols) map of how much of each output pixel
+        came from inside the frame (1 inside, 0 outside, fractional on the edge),
+        for renormalising a weighted average.
+
+    Returns
+    -------
+    ndarray or (ndarray, ndarray)
+        The warped frame, shape ``shape[:2] + frame.shape[2:]``, and optionally coverage.
+
+    Notes
+    -----
+    ``cv2.warpPerspective`` evaluates ``out(y) = frame(H^-1 y)``; ``H^-1`` is
+    computed here in float64 and passed with ``WARP_INVERSE_MAP``. Bilinear
+    interpolation (INTER_LINEAR) is a convex combination of neighbours, so linear
+    light stays non-negative and no ringing enters the average (cubic kernels
+    overshoot at edges). Borders replicate the edge pixels so no black enters an
+    average; ``coverage`` says which pixels are extrapolated. OpenCV 5 interpolates
+    float32 images of up to 4 channels at exact positions but quantises positions
+    to 1/32 px for float64 or more channels, so resampling runs on float32 groups
+    of at most 4 channels (float32 rounding, ~6e-8 relative, is far smaller).
+    """
+    a = _checked_frame(frame, "frame")
+    if len(shape) < 2 or int(shape[0]) < 1 or int(shape[1]) < 1:
+        raise InputError(f"shape must start with (rows, cols) >= 1, got {shape!r}")
+    inverse = np.linalg.inv(_as_homography(homography))
+    rows, cols = int(shape[0]), int(shape[1])
+    src = a.astype(np.float32, copy=False)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    size = (cols, rows)
+    channels = 1 if src.ndim == 2 else src.shape[2]
+    parts = []
+    for c0 in range(0, channels, 4):  # exact sub-pixel path: float32, <= 4 channels per call
+        part = src if src.ndim == 2 else np.ascontiguousarray(src[..., c0 : c0 + 4])
+        w = cv2.warpPerspective(part, inverse, size, flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        parts.append(w.reshape(rows, cols, -1) if src.ndim == 3 else w)
+    out = parts[0] if len(parts) == 1 else np.concatenate(parts, axis=2)
+    if a.dtype != np.float32:
+        out = out.astype(np.float64)
+    if not return_coverage:
+        return out
+    ones = np.ones(a.shape[:2], np.float32)
+    coverage = cv2.warpPerspective(ones, inverse, size, flags=flags, borderMode=cv2.BORDER_CONSTANT)
+    return out, coverage

@@ -1,0 +1,120 @@
+"""wiener."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import signal
+
+from pipeline.core.deconvolve.common import (
+    _LAM_MIN,
+    _WORKERS,
+    PRIORS,
+    _fast_shape,
+    _frame_depth,
+    _gradient_energy_2d,
+    _kernel_fft,
+    _laplacian_spectrum,
+    _per_channel,
+    _taper_pad,
+)
+from pipeline.errors import InputError
+
+
+def _natural_prior_scale(y, valid, sigma, kernel) -> np.ndarray:
+    """Gradient variance ``s2`` of the sharp image under the 1/|w|^2 prior, per channel.
+
+    With ``E|X(w)|^2 = N s2 / |D(w)|^2`` (``D`` the forward-difference pair), Parseval
+    gives ``mean|grad y|^2 = s2 sum(k^2) + 4 sigma^2``; solve for ``s2``.
+    """
+    energy = np.array([_gradient_energy_2d(y[..., c], valid[..., c]) for c in range(y.shape[2])])
+    s2 = (energy - 4.0 * sigma**2) / float(np.sum(kernel**2))
+    return np.maximum(s2, 4.0 * sigma**2)
+
+
+def _wiener_gain(k_fft, d2, lam: float, prior: str, variance=None) -> np.ndarray:
+    if prior == "natural":
+        reg = d2
+    else:  # flat spectrum of the zero-mean part: the mean (DC) is not regularised
+        reg = np.ones_like(d2)
+        reg[0, 0] = 0.0
+    denominator = np.abs(k_fft) ** 2 + lam * reg  # Wiener, Sec. 4.3 [24]
+    if variance is not None:
+        denominator = denominator + variance(k_fft.shape)
+    return np.conj(k_fft) / denominator
+
+
+def kernel_variance(samples, kernel):
+    """``V(w) = mean_u |K_u(w) - K(w)|^2`` of per-depth kernels around the one used.
+
+    With a depth-dependent blur ``K_u`` of mean ``K`` and variance ``V``, the linear
+    estimate minimising the expected error is ``K* / (|K|^2 + V + lam |D|^2)``:
+    frequencies where the IPSF is not depth-invariant (Eq. 8) are not amplified.
+    ``|K_u - K|^2`` is the spectrum of the autocorrelation of ``k_u - k``, a compact
+    array, so ``V`` is exact on any grid at the cost of one FFT. Returns a function
+    of an rfft grid shape giving ``V`` there.
+    """
+    samples = np.asarray(samples, dtype=np.float64)
+    kernel = np.asarray(kernel, dtype=np.float64)
+    if samples.ndim != 3 or samples.shape[1:] != kernel.shape:
+        raise InputError(
+            f"kernel_samples must have shape (n, {kernel.shape[0]}, {kernel.shape[1]}), "
+            f"got {samples.shape}"
+        )
+    diffs = samples - kernel
+    autocorrelation = np.mean(
+        [signal.fftconvolve(d, d[::-1, ::-1], mode="full") for d in diffs], axis=0
+    )
+
+    def on_grid(rshape: tuple[int, int]) -> np.ndarray:
+        shape = (rshape[0], 2 * (rshape[1] - 1))  # grids here are even (see _fast_len)
+        return np.abs(_kernel_fft(autocorrelation, shape, np.float64))
+
+    return on_grid
+
+
+def _wiener_channel(y, kernel, lam, prior, pad, variance=None) -> np.ndarray:
+    taper = max(max(kernel.shape), 16)
+    shape = _fast_shape((y.shape[0] + 2 * (pad + taper), y.shape[1] + 2 * (pad + taper)))
+    k_fft = _kernel_fft(kernel, shape, y.dtype)
+    gain = _wiener_gain(k_fft, _laplacian_spectrum(shape, y.dtype), lam, prior, variance)
+    gain = gain.astype(k_fft.dtype, copy=False)
+    crop = tuple(slice(pad + taper, pad + taper + n) for n in y.shape)
+    x_fft = gain * sfft.rfft2(_taper_pad(y, pad, taper, shape), workers=_WORKERS)
+    return sfft.irfft2(x_fft, s=shape, workers=_WORKERS)[crop]
+
+
+def _wiener_transfer(lam: float, prior: str, variance=None):
+    return lambda k_fft, d2: _wiener_gain(k_fft, d2, lam, prior, variance)
+
+
+def _plan_wiener(
+    y,
+    valid,
+    k,
+    sigma,
+    *,
+    prior="natural",
+    regularization=None,
+    kernel_samples=None,
+):
+    if prior not in PRIORS:
+        raise InputError(f"prior must be one of {PRIORS}, got {prior!r}")
+    lam = _per_channel("regularization", regularization, y.shape[2])
+    if lam is None:
+        if prior == "natural":
+            scale = _natural_prior_scale(y, valid, sigma, k)
+        else:  # white spectrum: E|X|^2 = N s0^2, var(y) = s0^2 sum(k^2) + sigma^2
+            var = np.array(
+                [
+                    float(np.var(y[..., c][valid[..., c]])) if valid[..., c].any() else 0.0
+                    for c in range(y.shape[2])
+                ]
+            )
+            scale = np.maximum((var - sigma**2) / float(np.sum(k**2)), sigma**2)
+        lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
+    lam = np.clip(lam, _LAM_MIN, None)
+    variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
+    pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))
+    params = {"lam": lam, "prior": prior, "pad": pad, "variance": variance}
+    return params, pad

@@ -1,0 +1,536 @@
+"""plan."""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+import math
+
+import numpy as np
+from scipy import fft as sfft
+from scipy import ndimage
+
+from pipeline.core import optics, psf, spectra
+from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile
+from pipeline.core.scene import Camera, Exposure, Scene, mean_position
+from pipeline.errors import InputError
+
+REFERENCE_GRID = 256
+EDGE_BLUR_PX = 1.0
+MAX_LAYERS = 4000
+MAX_MAGNIFICATION_STEPS = 64
+_MAG_NODES = 48
+_CHECK_DEPTHS = 5
+
+
+# ----------------------------------------------------------------------------- the metric
+def _grid(size: int) -> int:
+    return max(REFERENCE_GRID, 1 << (2 * size - 1).bit_length())
+
+
+@dataclasses.dataclass
+class _Spectra:
+    """Kernel spectra on one ``n x n`` grid (real FFT half-plane) and the weights |F|^2."""
+
+    n: int
+
+    def __post_init__(self) -> None:
+        full = spectra.natural_image_spectrum((self.n, self.n))
+        half = full[:, : self.n // 2 + 1].copy()
+        half[:, 1 : (self.n + 1) // 2] *= 2  # columns that stand for their conjugate too
+        self.weights = half
+        self.fy = sfft.fftfreq(self.n)[:, None]
+        self.fx = sfft.rfftfreq(self.n)[None, :]
+
+    def of(self, kernel: np.ndarray) -> np.ndarray:
+        padded = np.zeros((self.n, self.n))
+        h = kernel.shape[0] // 2
+        padded[: kernel.shape[0], : kernel.shape[1]] = kernel
+        return sfft.rfft2(np.roll(padded, (-h, -h), axis=(0, 1)))
+
+    def error(self, diff: np.ndarray) -> float:
+        return float(np.sqrt(np.sum((diff.real**2 + diff.imag**2) * self.weights)))
+
+    def shift(self, dx: float, dy: float) -> np.ndarray:
+        return np.exp(-2j * np.pi * (self.fx * dx + self.fy * dy))
+
+
+def kernel_error(k1: np.ndarray, k2: np.ndarray) -> float:
+    """RMS image change (per unit RMS contrast of a 1/f natural image) from ``k1`` -> ``k2``.
+
+    ``sqrt(sum_w |K1 - K2|^2 |F(w)|^2)`` on a 256 px grid (larger for kernels over 128 px);
+    the tolerance of :func:`plan` means this everywhere. Kernels: odd, centred.
+    """
+    k1, k2 = np.asarray(k1, float), np.asarray(k2, float)
+    for name, k in (("k1", k1), ("k2", k2)):
+        if k.ndim != 2 or k.shape[0] != k.shape[1] or k.shape[0] % 2 == 0:
+            raise InputError(f"{name} must be a square kernel of odd size, got shape {k.shape}")
+    spectra = _Spectra(_grid(max(k1.shape[0], k2.shape[0])))
+    return spectra.error(spectra.of(k1) - spectra.of(k2))
+
+
+# ----------------------------------------------------------------------------- plan
+@dataclasses.dataclass(frozen=True)
+class Effect:
+    """One effect the plan considered: applied or skipped, why, and the error of skipping it."""
+
+    name: str
+    applied: bool
+    reason: str
+    estimated_error: float
+
+
+@dataclasses.dataclass(frozen=True)
+class Layer:
+    """Depth layer: inverse depths (1/mm) it covers, ``(lo, hi]``, and its representative."""
+
+    inv_lo: float
+    inv_hi: float
+    inv_rep: float
+
+    @property
+    def depth_mm(self) -> float:
+        return _depth(self.inv_rep)
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Step:
+    """A sub-step of the exposure: its motion, its image scale ``p / p_ref`` and time weight."""
+
+    profile: Profile
+    scale: float
+    weight: float
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Band:
+    """Rows ``[row_start, row_stop)`` rendered with one motion window, layers and sub-steps."""
+
+    row_start: int
+    row_stop: int
+    profile: Profile
+    layers: tuple[Layer, ...]
+    steps: tuple[Step, ...]
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Plan:
+    """What :func:`render` will simulate for one capture, and why (see :meth:`explain`)."""
+
+    tolerance: float
+    shape: tuple[int, int]
+    lens: Lens
+    model: str
+    bands: tuple[Band, ...]
+    occlusion: bool
+    edge_inv_depth: float
+    noise: Exposure | None
+    effects: tuple[Effect, ...]
+
+    @property
+    def layer_count(self) -> int:
+        return max(len(b.layers) for b in self.bands)
+
+    @property
+    def convolutions(self) -> int:
+        """FFT convolutions the render costs (one per layer per sub-step per band)."""
+        return sum(len(b.layers) * len(b.steps) for b in self.bands)
+
+    @property
+    def estimated_error(self) -> float:
+        """Sum of the estimated errors of everything approximated or skipped."""
+        return float(sum(e.estimated_error for e in self.effects))
+
+    def explain(self) -> str:
+        """Human-readable account of each effect: applied or skipped, reason, estimated error."""
+        rows, cols = self.shape
+        lines = [
+            f"simulation plan: {rows}x{cols} px, lens {self.lens.name!r}, {self.model} PSF, "
+            f"tolerance {self.tolerance:g} (RMS image error per unit RMS contrast, "
+            "1/f natural image)",
+        ]
+        for e in self.effects:
+            state = "apply" if e.applied else "skip "
+            lines.append(f"  [{state}] {e.name}: {e.reason} (est. error {e.estimated_error:.2g})")
+        lines.append(
+            f"  cost: {self.convolutions} FFT convolution(s) ({len(self.bands)} band(s), "
+            f"up to {self.layer_count} layer(s))"
+        )
+        return "\n".join(lines)
+
+
+def _depth(inv: float) -> float:
+    return math.inf if inv <= 0 else 1.0 / inv
+
+
+def _present_inverse_depths(scene: Scene, lens: Lens) -> np.ndarray:
+    values = []
+    for s in scene.surfaces:
+        d = s.depth_mm[s.alpha > 0]
+        if d.size and d.min() <= lens.focal_length_mm:
+            raise InputError(
+                f"scene depth {d.min():.6g} mm is not beyond the focal length "
+                f"{lens.focal_length_mm} mm (no real image); move the scene farther"
+            )
+        values.append(1.0 / d)  # inf -> 0
+    present = np.unique(np.concatenate(values))
+    if present.size == 0:
+        raise InputError("the scene has no pixel with alpha > 0; nothing to render")
+    return present
+
+
+class _KernelCache:
+    """IPSF kernels and spectra per (inverse depth, motion window)."""
+
+    def __init__(self, lens: Lens, model: str, spectra: _Spectra) -> None:
+        self.lens, self.model, self.spectra = lens, model, spectra
+        self._k: dict = {}
+        self._s: dict = {}
+
+    def kernel(self, inv: float, profile: Profile) -> np.ndarray:
+        key = (inv, id(profile))
+        if key not in self._k:
+            self._k[key] = psf.integrated_psf(self.lens, _depth(inv), profile, model=self.model)
+        return self._k[key]
+
+    def spectrum(self, inv: float, profile: Profile) -> np.ndarray:
+        key = (inv, id(profile))
+        if key not in self._s:
+            self._s[key] = self.spectra.of(self.kernel(inv, profile))
+        return self._s[key]
+
+
+def _partition(present, lo, hi, dist, tol, *, integer: bool):
+    """Greedy split of ``[lo, hi]`` into parts whose members are within ``tol`` of a representative.
+
+    Samples are refined by bisection (where scene values are present) until neighbours are
+    within ``tol / 3``; parts are grown greedily to ``2 tol / 3`` from a representative
+    sample, so by the triangle inequality (``kernel_error`` is a norm) every present value
+    is within about ``tol`` of its part's representative (exact if the kernel changes
+    monotonically between neighbouring samples). Returns ``[(end, rep), ...]`` and the
+    largest estimated error.
+    """
+    samples = {lo, hi}
+    stack, gap = [(lo, hi)], 0.0
+    while stack:
+        a, b = stack.pop()
+        if np.searchsorted(present, b, "left") <= np.searchsorted(present, a, "right"):
+            continue  # no scene value strictly inside
+        d = dist(a, b)
+        m = (a + b) // 2 if integer else a + 0.5 * (b - a)
+        if d > tol / 3 and m not in (a, b):
+            samples.add(m)
+            stack += [(a, m), (m, b)]
+        else:
+            gap = max(gap, d if m not in (a, b) else 0.0)
+    xs = sorted(samples)
+    parts, worst, i = [], 0.0, 0
+    while True:
+        j = i
+        while j + 1 < len(xs) and dist(xs[i], xs[j + 1]) <= 2 * tol / 3:
+            j += 1
+        e = j
+        while e + 1 < len(xs) and dist(xs[j], xs[e + 1]) <= 2 * tol / 3:
+            e += 1
+        worst = max(worst, dist(xs[i], xs[j]), dist(xs[j], xs[e]))
+        parts.append((xs[e], xs[j]))
+        if len(parts) > MAX_LAYERS:
+            raise InputError(
+                f"tolerance {tol:g} needs more than {MAX_LAYERS} layers/bands; raise the tolerance"
+            )
+        k = int(np.searchsorted(present, xs[e], side="right"))
+        if k >= present.size:
+            break
+        i = max(int(np.searchsorted(xs, present[k], side="right")) - 1, e + 1)
+    return parts, worst + gap
+
+
+def _layers(present, profile, cache: _KernelCache, tol):
+    lo, hi = float(present[0]), float(present[-1])
+
+    def dist(a, b):
+        return cache.spectra.error(cache.spectrum(a, profile) - cache.spectrum(b, profile))
+
+    parts, worst = _partition(present, lo, hi, dist, tol, integer=False)
+    layers, start = [], -math.inf
+    for end, rep in parts:
+        layers.append(Layer(start, end, rep))
+        start = end
+    return tuple(layers), worst
+
+
+def _blur_px(lens: Lens, inv: float, p_mm: np.ndarray) -> np.ndarray:
+    v = optics.image_distance(lens.focal_length_mm, _depth(inv))
+    return lens.aperture_mm * np.abs(v - p_mm) / v / lens.pixel_pitch_mm  # Eq. 2
+
+
+def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
+    """Sub-steps for the magnification change ``p(t)/p_ref`` and the error of skipping it."""
+    t0, t1 = float(profile.times_s[0]), float(profile.times_s[-1])
+    edges = np.linspace(t0, t1, _MAG_NODES + 1)
+    t_mid = 0.5 * (edges[1:] + edges[:-1])
+    p = profile.position(t_mid)
+    corner = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+    if np.ptp(p) == 0:  # static: one node
+        p = p[:1]
+    shifts = corner[None, :] * (p / p_ref - 1)[:, None]  # px at the sensor corner
+    if np.max(np.abs(shifts)) < 1e-9:
+        return (Step(profile, 1.0, 1.0),), 0.0, False, 1
+    nodes = p.size
+    reps = [layer.inv_rep for layer in layers]
+    picks = np.unique(np.linspace(0, len(reps) - 1, min(_CHECK_DEPTHS, len(reps))).round())
+    checks = {reps[int(i)] for i in picks}
+    checks.add(min(reps, key=lambda d: float(_blur_px(lens, d, p).min())))  # the sharpest
+    half = (
+        max(
+            psf.kernel_size(
+                float(_blur_px(lens, d, p).max()), model=model, gaussian_g=lens.gaussian_g
+            )
+            for d in checks
+        )
+        // 2
+    )
+    spectra_q = []
+    for inv in checks:
+        b = _blur_px(lens, inv, p)
+        spectra_q.append(
+            [spectra.of(psf.raster_lens_psf(model, bq, half, lens.gaussian_g)) for bq in b]
+        )
+
+    def error(step_of_node, step_shift):
+        worst = 0.0
+        for ks in spectra_q:
+            diff = sum(
+                k * (spectra.shift(*(shifts[q] - step_shift[step_of_node[q]])) - 1)
+                for q, k in enumerate(ks)
+            )
+            worst = max(worst, spectra.error(diff / len(ks)))
+        return worst
+
+    skip_error = error(np.zeros(nodes, int), np.zeros((1, 2)))
+    if skip_error <= tol:
+        return (Step(profile, 1.0, 1.0),), skip_error, False, 1
+    n = 1
+    while True:
+        step_of_node = np.arange(nodes) * n // nodes
+        step_shift = np.array([shifts[step_of_node == s].mean(axis=0) for s in range(n)])
+        err = error(step_of_node, step_shift)
+        if err <= tol or n >= min(MAX_MAGNIFICATION_STEPS, nodes):
+            break
+        n = min(2 * n, nodes)  # at most one step per time node: no empty steps
+    return _steps(profile, p_ref, n), err, True, n
+
+
+def _edges(scene: Scene, edge: float, radius: int) -> tuple[int, float]:
+    """Pixels whose neighbourhood (blur radius) holds depths nearer by more than ``edge``."""
+    size = 2 * radius + 1
+    hi = lo = None
+    for s in scene.surfaces:
+        inv = np.where(s.alpha > 0, 1.0 / s.depth_mm, np.nan)
+        mx = ndimage.maximum_filter(np.nan_to_num(inv, nan=-np.inf), size=size, mode="reflect")
+        mn = np.where(np.isnan(inv), np.inf, inv)
+        hi = mx if hi is None else np.maximum(hi, mx)
+        lo = mn if lo is None else np.minimum(lo, mn)
+    jump = np.where(np.isfinite(lo), hi - lo, 0.0)
+    return int(np.count_nonzero(jump > edge)), float(jump.max())
+
+
+def plan(
+    scene: Scene,
+    camera: Camera,
+    *,
+    tolerance: float = 1e-3,
+    occlusion: bool | None = None,
+    magnification_steps: int | None = None,
+    per_row: bool = False,
+) -> Plan:
+    """Decide which effects a capture of ``scene`` needs at ``tolerance`` (see module notes).
+
+    Parameters
+    ----------
+    scene : Scene
+    camera : Camera
+    tolerance : float
+        Largest acceptable :func:`kernel_error` of any approximation (default 1e-3).
+    occlusion : bool, optional
+        Force occlusion compositing on/off (default: on iff the scene has depth edges).
+    magnification_steps : int, optional
+        Force this many magnification sub-steps (0: ignore magnification).
+    per_row : bool
+        Rolling shutter: render every row with its own window (no banding).
+
+    Returns
+    -------
+    Plan
+    """
+    if not isinstance(scene, Scene):
+        raise InputError(f"scene must be a pipeline.core.scene.Scene, got {type(scene).__name__}")
+    if not isinstance(camera, Camera):
+        raise InputError(
+            f"camera must be a pipeline.core.scene.Camera, got {type(camera).__name__}"
+        )
+    if not (isinstance(tolerance, (int, float)) and 0 < tolerance < 1):
+        raise InputError(f"tolerance must be in (0, 1), got {tolerance!r}")
+    lens, model = camera.lens, camera.model
+    rows, cols = scene.shape
+    present = _present_inverse_depths(scene, lens)
+    p_all = camera.motion.image_distances_mm
+    max_blur = max(float(_blur_px(lens, d, p_all).max()) for d in (present[0], present[-1]))
+    size = psf.kernel_size(max_blur, model=model, gaussian_g=lens.gaussian_g)
+    if size > psf.MAX_KERNEL_SIZE:
+        raise InputError(
+            f"the blur reaches {max_blur:.0f} px ({size} px kernel > {psf.MAX_KERNEL_SIZE}); "
+            "use a coarser pixel pitch (a downscaled lens profile) or a smaller aperture"
+        )
+    spectra = _Spectra(_grid(size))
+    cache = _KernelCache(lens, model, spectra)
+    effects = []
+    if scene.missing_pixels:
+        what = (
+            "given the nearest valid depth"
+            if scene.missing_depth == "fill"
+            else "excluded (zero radiance and alpha)"
+        )
+        effects.append(Effect("missing depth", True, f"{scene.missing_pixels} px {what}", 0.0))
+
+    # Rolling shutter: bands of rows whose IPSFs agree within the tolerance.
+    windows = camera.row_windows(rows)
+    profiles = [camera.motion] if camera.effective_shutter == "global" else None
+    if profiles is None:
+        row_profiles: dict[int, Profile] = {}
+
+        def row_profile(r: int) -> Profile:
+            if r not in row_profiles:
+                row_profiles[r] = camera.motion.window(*windows[r])
+            return row_profiles[r]
+
+        q = np.unique(np.quantile(present, np.linspace(0, 1, _CHECK_DEPTHS)))
+
+        def row_dist(a, b):
+            pa, pb = row_profile(int(a)), row_profile(int(b))
+            return max(spectra.error(cache.spectrum(d, pa) - cache.spectrum(d, pb)) for d in q)
+
+        all_rows = np.arange(rows)
+        if per_row:
+            parts, band_err = [(r, r) for r in range(rows)], 0.0
+        else:
+            parts, band_err = _partition(all_rows, 0, rows - 1, row_dist, tolerance, integer=True)
+        starts = [0] + [end + 1 for end, _ in parts[:-1]]
+        band_specs = [(s, end + 1, row_profile(rep)) for s, (end, rep) in zip(starts, parts)]
+        if len(parts) == 1:
+            effects.append(
+                Effect(
+                    "rolling-shutter rows",
+                    False,
+                    "every row's IPSF is within the tolerance of the middle row's: one band",
+                    band_err,
+                )
+            )
+        else:
+            effects.append(
+                Effect(
+                    "rolling-shutter rows",
+                    True,
+                    f"{len(parts)} bands of rows, each with its own exposure window",
+                    band_err,
+                )
+            )
+    else:
+        band_specs = [(0, rows, camera.motion)]
+        effects.append(Effect("rolling-shutter rows", False, "global shutter", 0.0))
+
+    p_ref = camera.reference_mm
+    bands, layer_err, mag_err, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
+    for r0, r1, prof in band_specs:
+        layers, err = _layers(present, prof, cache, tolerance)
+        layer_err = max(layer_err, err)
+        if magnification_steps is None:
+            steps, m_err, m_app, n = _magnification(
+                prof, layers, lens, model, spectra, p_ref, (rows, cols), tolerance
+            )
+        else:
+            steps, m_err, m_app, n = _forced_steps(prof, p_ref, magnification_steps)
+        mag_err, mag_applied = max(mag_err, m_err), mag_applied or m_app
+        mag_steps = max(mag_steps, n)
+        bands.append(Band(r0, r1, prof, layers, steps))
+    n_layers = max(len(b.layers) for b in bands)
+    span = f"{_depth(present[-1]):.6g}-{_depth(present[0]):.6g} mm"
+    if n_layers == 1:
+        reason = f"the whole depth range ({span}) is within the tolerance of one kernel"
+    else:
+        reason = f"{n_layers} layers over {span}, split in inverse depth by kernel_error"
+    effects.append(Effect("depth layers", n_layers > 1, reason, layer_err))
+    corner_px = 0.5 * math.hypot(rows - 1, cols - 1) * float(np.max(np.abs(p_all / p_ref - 1)))
+    if mag_applied:
+        reason = (
+            f"image moves up to {corner_px:.3g} px at the corner (p/p_ref, "
+            f"p_ref={p_ref:.6g} mm): {mag_steps} scaled sub-step(s)"
+        )
+    else:
+        reason = f"image moves up to {corner_px:.3g} px at the corner: below the tolerance"
+    effects.append(Effect("magnification", mag_applied, reason, mag_err))
+
+    a_p = lens.aperture_mm * float(p_all.max()) / lens.pixel_pitch_mm  # d b_px / d D (Eq. 2)
+    edge = EDGE_BLUR_PX / a_p
+    n_edge, jump = _edges(scene, edge, size // 2)
+    if occlusion is None:
+        occlusion = n_edge > 0
+    if n_edge == 0:
+        reason = (
+            f"no depth edges (no depth step > {edge * 1e3:.3g} dpt = {EDGE_BLUR_PX:g} px "
+            "of blur within a blur radius): plain sum of layers"
+        )
+        est = 0.0
+    else:
+        reason = (
+            f"{n_edge} px near depth edges (steps up to {jump * a_p:.3g} px of blur): "
+            "back-to-front 'over' compositing"
+        )
+        est = float(max(np.max(s.radiance) for s in scene.surfaces))
+    effects.append(Effect("occlusion", occlusion, reason, 0.0 if occlusion else est))
+
+    if camera.exposure is None:
+        effects.append(Effect("noise", False, "no exposure level given", 0.0))
+    else:
+        e = camera.exposure
+        effects.append(
+            Effect(
+                "noise",
+                True,
+                f"Poisson shot noise at {e.electrons_at_unit:g} e-/unit radiance + "
+                f"{e.read_noise_e:g} e- read noise",
+                0.0,
+            )
+        )
+    return Plan(
+        tolerance=float(tolerance),
+        shape=(rows, cols),
+        lens=lens,
+        model=model,
+        bands=tuple(bands),
+        occlusion=bool(occlusion),
+        edge_inv_depth=edge,
+        noise=camera.exposure,
+        effects=tuple(effects),
+    )
+
+
+
+def _forced_steps(profile: Profile, p_ref: float, n: int):
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise InputError(f"magnification_steps must be an integer >= 0, got {n!r}")
+    if n == 0:
+        return (Step(profile, 1.0, 1.0),), 0.0, False, 1
+    return _steps(profile, p_ref, n), 0.0, True, n
+
+
+def _steps(profile: Profile, p_ref: float, n: int) -> tuple[Step, ...]:
+    """``n`` equal-time sub-steps, each scaled by its mean ``p / p_ref``."""
+    t0, t1 = float(profile.times_s[0]), float(profile.times_s[-1])
+    bounds = np.linspace(t0, t1, n + 1)
+    steps = []
+    for a, b in itertools.pairwise(bounds):
+        window = profile.window(float(a), float(b)) if n > 1 else profile
+        steps.append(Step(window, mean_position(window) / p_ref, (b - a) / (t1 - t0)))
+    return tuple(steps)

@@ -1,0 +1,70 @@
+"""spectra."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+
+from pipeline.errors import InputError
+
+
+# ----------------------------------------------------------------------------- comparison
+def natural_image_spectrum(shape: tuple[int, int]) -> np.ndarray:
+    """``|F(w)|^2 = 1 / |w|^2`` (w in cycles/px, w=0 set to the lowest non-zero value), unit sum.
+
+    The 1/f amplitude (1/f^2 power) fall-off of natural images (Field 1987; van der
+    Schaaf & van Hateren 1996), the weighting the paper cites for Eq. 8.
+    """
+    fy = sfft.fftfreq(shape[0])[:, None]
+    fx = sfft.fftfreq(shape[1])[None, :]
+    w2 = fx**2 + fy**2
+    w2[0, 0] = min(1.0 / shape[0] ** 2, 1.0 / shape[1] ** 2)
+    power = 1.0 / w2
+    return power / power.sum()
+
+
+def _common_spectra(k1: np.ndarray, k2: np.ndarray, n: int | None):
+    for name, k in (("k1", k1), ("k2", k2)):
+        if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
+            raise InputError(f"{name} must be a 2-D kernel of odd size, got shape {k.shape}")
+        if not np.all(np.isfinite(k)):
+            raise InputError(f"{name} must be finite")
+    size = max(*k1.shape, *k2.shape)
+    n = n or max(64, 1 << (2 * size - 1).bit_length())
+    return _centred_fft(k1, n), _centred_fft(k2, n), (n, n)
+
+
+def _centred_fft(kernel: np.ndarray, n: int) -> np.ndarray:
+    padded = np.zeros((n, n))
+    ry, rx = kernel.shape[0] // 2, kernel.shape[1] // 2
+    padded[: ry + 1, : rx + 1] = kernel[ry:, rx:]
+    padded[: ry + 1, n - rx :] = kernel[ry:, :rx]
+    padded[n - ry :, : rx + 1] = kernel[:ry, rx:]
+    padded[n - ry :, n - rx :] = kernel[:ry, :rx]
+    return sfft.fft2(padded)
+
+
+def dissimilarity(
+    k1: np.ndarray, k2: np.ndarray, *, eps: float = 1e-3, n: int | None = None
+) -> float:
+    """Dissimilarity of two PSFs, Eq. 8 (Wiener reconstruction error weighted by |F|^2).
+
+    ``d = sum_w (|K1-K2|^2/(|K1|^2+eps) + |K1-K2|^2/(|K2|^2+eps)) |F(w)|^2`` with
+    :func:`natural_image_spectrum` as ``|F|^2`` (unit sum) and ``eps = 1e-3``
+    (the paper gives no value). Kernels are zero-padded, centred, to an ``n x n`` grid.
+    """
+    f1, f2, shape = _common_spectra(np.asarray(k1, float), np.asarray(k2, float), n)
+    diff2 = np.abs(f1 - f2) ** 2
+    terms = diff2 / (np.abs(f1) ** 2 + eps) + diff2 / (np.abs(f2) ** 2 + eps)  # Eq. 8
+    return float(np.sum(terms * natural_image_spectrum(shape)))
+
+
+def mtf(kernel: np.ndarray, *, n: int = 256) -> tuple[np.ndarray, np.ndarray]:
+    """Modulation transfer function along the horizontal frequency axis.
+
+    Returns frequencies (cycles/px, 0..0.5) and ``|K|`` there (Fig. 9a).
+    """
+    kernel = np.asarray(kernel, float)
+    spectrum = _centred_fft(kernel, max(n, kernel.shape[0]))
+    m = spectrum.shape[1]
+    return np.arange(m // 2 + 1) / m, np.abs(spectrum[0, : m // 2 + 1])

@@ -1,0 +1,94 @@
+"""exif."""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from pathlib import Path
+
+import tifffile
+
+from pipeline.errors import InputError
+from pipeline.io.probe import _EXIF_HEADER, _existing, _jpeg_structure, _kind, _png_chunks
+
+
+def read_exif(path: str | Path) -> bytes | None:
+    """The EXIF block of a JPEG (APP1) or PNG (eXIf chunk), or None.
+
+    Returned as ``b"Exif\\0\\0"`` + the TIFF-structured EXIF data, the form
+    :func:`write_image` accepts. TIFF and RAW files keep EXIF in an IFD rather
+    than a block; for them this returns None (see :func:`subject_distance_mm`).
+    """
+    p = _existing(path)
+    kind = _kind(p)
+    if kind == "jpeg":
+        return _jpeg_structure(p.read_bytes(), p).exif
+    if kind == "png":
+        data = p.read_bytes()
+        for ctype, start, end in _png_chunks(data, p):
+            if ctype == b"eXIf":
+                return _EXIF_HEADER + data[start:end]
+    return None
+
+
+_SUBJECT_DISTANCE = 0x9206  # EXIF SubjectDistance, RATIONAL, metres
+_EXIF_IFD = 0x8769
+
+
+def subject_distance_mm(path: str | Path) -> float | None:
+    """EXIF SubjectDistance in mm (``math.inf`` for infinity), or None if absent or 0.
+
+    JPEG/PNG via their EXIF block; TIFF and TIFF-based RAW files (DNG, CR2,
+    NEF, ARW, ...) via tifffile's EXIF IFD; other RAW containers give None.
+    """
+    p = _existing(path)
+    kind = _kind(p)
+    if kind in ("jpeg", "png"):
+        block = read_exif(p)
+        if block is None:
+            return None
+        from PIL import Image  # pillow parses EXIF; it is a dependency of matplotlib
+
+        exif = Image.Exif()
+        exif.load(block)
+        value = exif.get_ifd(_EXIF_IFD).get(_SUBJECT_DISTANCE)
+        rational = None if value is None else (value.numerator, value.denominator)
+    else:
+        try:
+            with tifffile.TiffFile(p) as tif:
+                tag = tif.pages.first.tags.get("ExifTag")
+                rational = None if tag is None else tag.value.get("SubjectDistance")
+        except (tifffile.TiffFileError, struct.error, ValueError):
+            return None  # not TIFF-structured (CR3, RAF, ...): no EXIF IFD to read
+    if rational is None:
+        return None
+    numerator, denominator = (float(rational[0]), float(rational[1]))
+    if numerator == 0xFFFFFFFF:
+        return float("inf")
+    if numerator <= 0 or denominator <= 0:
+        return None  # 0 means "unknown" in EXIF
+    return numerator / denominator * 1000.0
+
+
+def _insert_jpeg_exif(jpeg: bytes, exif: bytes, path: Path) -> bytes:
+    """Insert an APP1 EXIF segment after SOI (and after a JFIF APP0 if there is one)."""
+    block = exif if exif.startswith(_EXIF_HEADER) else _EXIF_HEADER + exif
+    if len(block) + 2 > 0xFFFF:
+        raise InputError(f"{path}: EXIF block of {len(block)} bytes is too large for JPEG APP1")
+    pos = 2
+    if jpeg[2:4] == b"\xff\xe0":
+        pos += 2 + struct.unpack(">H", jpeg[4:6])[0]
+    segment = b"\xff\xe1" + struct.pack(">H", len(block) + 2) + block
+    return jpeg[:pos] + segment + jpeg[pos:]
+
+
+def _insert_png_exif(png: bytes, exif: bytes, path: Path) -> bytes:
+    """Insert an eXIf chunk before the first IDAT chunk."""
+    body = exif.removeprefix(_EXIF_HEADER)
+    for ctype, start, _end in _png_chunks(png, path):
+        if ctype == b"IDAT":
+            pos = start - 8
+            break
+    chunk = struct.pack(">I", len(body)) + b"eXIf" + body
+    chunk += struct.pack(">I", zlib.crc32(b"eXIf" + body) & 0xFFFFFFFF)
+    return png[:pos] + chunk + png[pos:]

@@ -1,0 +1,223 @@
+"""Reading and writing images: RAW, TIFF, PNG, JPEG <-> float32 linear light.
+
+Every frame enters the pipeline as float32 linear light, shape ``(rows, cols)``
+or ``(rows, cols, 3)`` (DESIGN.md, units). The weighted average of Sec. 9 and
+the integrated PSF of Eqs. 5-7 are sums of *radiance*, so frames must be
+linear before they are averaged:
+
+* RAW files (whatever LibRaw reads: DNG, CR2, CR3, NEF, ARW, KDC, ...) are
+  demosaiced by LibRaw with a unit gamma, no auto-brightening and a fixed white
+  level, 16 bit, camera white balance, into linear sRGB primaries, then divided
+  by 65535: a value of 1 is the white level and 0 the black level of the green
+  channel ((raw - black) / (white - black)); red and blue carry the white
+  balance gains. LibRaw clips each channel at the white level after white
+  balance (highlight mode "clip"), so saturated highlights are not linear.
+* Integer TIFF, PNG and JPEG code values are sRGB-encoded and are linearised
+  with the exact piecewise sRGB EOTF (IEC 61966-2-1). Float TIFFs are linear.
+  A 16-bit TIFF written by :func:`write_image` with ``encoding="linear16"`` is
+  marked as linear in its ImageDescription and is read back as linear.
+* Pixels are returned as stored: EXIF orientation is not applied (RAW is
+  decoded in sensor orientation), so all frames of one camera line up. An alpha
+  channel is dropped; multi-page TIFFs give their first page.
+
+Writers encode linear float images; integer formats clip to [0, 1] at encoding
+(the fraction clipped is logged), float32 TIFF is written unclipped. Every
+write is atomic: a temporary file in the target directory, then ``os.replace``.
+"""
+
+from __future__ import annotations
+
+import functools
+import re
+import struct
+from pathlib import Path
+
+import cv2
+import numpy as np
+import rawpy
+import tifffile
+
+from pipeline.core.colour import srgb_to_linear
+from pipeline.errors import InputError
+from pipeline.io.probe import (
+    _existing,
+    _jpeg_structure,
+    _kind,
+    _png_structure,
+    _raw_error,
+    _tiff_page_info,
+    frame_info,
+)
+
+_TIFF_MARK_RE = re.compile(r"flexdof transfer=(srgb|linear)")
+
+
+@functools.cache
+def _decode_lut(bits: int, transfer: str) -> np.ndarray:
+    """float32 value of every integer code of a ``bits``-bit encoding."""
+    codes = np.arange(2**bits, dtype=np.float64) / (2**bits - 1)
+    table = srgb_to_linear(codes) if transfer == "srgb" else codes
+    table = table.astype(np.float32)
+    table.setflags(write=False)
+    return table
+
+
+def _decode_codes(codes: np.ndarray, transfer: str, path: Path) -> np.ndarray:
+    """Integer code values (uint8/uint16) or floats -> float32 linear light."""
+    if codes.dtype == np.uint8:
+        return cv2.LUT(codes, _decode_lut(8, transfer).reshape(1, 256))  # 3x faster than take
+    if codes.dtype == np.uint16:
+        return _decode_lut(16, transfer)[codes]
+    if codes.dtype.kind == "f":
+        out = codes.astype(np.float32)
+        return srgb_to_linear(out) if transfer == "srgb" else out
+    raise InputError(
+        f"{path}: unsupported sample type {codes.dtype} (supported: 8- and 16-bit "
+        "integers, float); convert the file to 16-bit or float TIFF"
+    )
+
+
+def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
+    """Read one image as float32 linear light.
+
+    Parameters
+    ----------
+    path : str or Path
+        A RAW file (anything LibRaw reads), TIFF, PNG or JPEG; the format is
+        chosen by the extension.
+    transfer : {"srgb", "linear"}, optional
+        Override the transfer function of integer TIFF/PNG/JPEG code values
+        (default: sRGB, or what a flexdof TIFF says). Ignored for RAW.
+
+    Returns
+    -------
+    ndarray
+        float32, ``(rows, cols)`` or ``(rows, cols, 3)``, linear light with
+        white at 1 (see the module notes for RAW normalisation).
+
+    Raises
+    ------
+    InputError
+        Missing, truncated, corrupt or unsupported files, naming the file.
+    """
+    p = _existing(path)
+    if transfer not in (None, "srgb", "linear"):
+        raise InputError(f"transfer must be 'srgb', 'linear' or None, got {transfer!r}")
+    kind = _kind(p)
+    if kind == "raw":
+        return _read_raw(p)
+    if kind == "tiff":
+        image = _read_tiff(p, transfer)
+        bad = int(np.count_nonzero(~np.isfinite(image)))
+        if bad:  # float TIFFs can hold NaN/inf; nothing downstream can use them
+            raise InputError(f"{p}: {bad} pixel values are NaN or infinite; fix or drop this frame")
+        return image
+    return _read_codec(p, kind, transfer or "srgb")
+
+
+def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
+    """A reduced grey copy (float32 linear light, longest side ``max_side_px``) of a frame.
+
+    JPEGs are decoded at 1/2, 1/4 or 1/8 scale in the DCT domain (much cheaper than
+    a full decode); other formats are decoded fully and reduced with area
+    averaging. The geometry is that of ``cv2.resize`` of the full frame.
+    """
+    p = _existing(path)
+    if max_side_px < 1:
+        raise InputError(f"max_side_px must be >= 1, got {max_side_px!r}")
+    info = frame_info(p)
+    full_side = max(info.rows, info.cols)
+    image = None
+    if _kind(p) == "jpeg" and full_side > max_side_px:
+        factor = max((r for r in (1, 2, 4, 8) if full_side / r >= max_side_px), default=1)
+        flags = {
+            1: cv2.IMREAD_COLOR,
+            2: cv2.IMREAD_REDUCED_COLOR_2,
+            4: cv2.IMREAD_REDUCED_COLOR_4,
+            8: cv2.IMREAD_REDUCED_COLOR_8,
+        }[factor]
+        data = p.read_bytes()
+        _jpeg_structure(data, p)
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+        if decoded is None:
+            raise InputError(f"{p}: OpenCV cannot decode it (corrupt JPEG data)")
+        image = _decode_codes(_to_rgb(decoded, p, bgr=True), "srgb", p)
+    if image is None:
+        image = read_frame(p)
+    grey = image.mean(axis=-1, dtype=np.float32) if image.ndim == 3 else image
+    scale = min(1.0, max_side_px / full_side)
+    size = (max(1, round(info.cols * scale)), max(1, round(info.rows * scale)))
+    if grey.shape[::-1] != size:
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    return np.ascontiguousarray(grey, dtype=np.float32)
+
+
+def _read_raw(path: Path) -> np.ndarray:
+    try:
+        with rawpy.imread(str(path)) as raw:
+            rgb16 = raw.postprocess(
+                gamma=(1, 1),  # linear output curve
+                no_auto_bright=True,
+                adjust_maximum_thr=0.0,  # keep the file's white level, never the data maximum
+                use_camera_wb=True,
+                output_bps=16,
+                output_color=rawpy.ColorSpace.sRGB,
+                user_flip=0,  # sensor orientation, like the other formats
+            )
+            image = rgb16.astype(np.float32)  # a copy: nothing refers to LibRaw's memory
+    except rawpy.LibRawError as err:
+        raise _raw_error(path, err) from err
+    image /= np.float32(65535)
+    return image
+
+
+def _tiff_transfer(page: tifffile.TiffPage, transfer: str | None) -> str:
+    if transfer is not None:
+        return transfer
+    if page.dtype is not None and page.dtype.kind == "f":
+        return "linear"
+    mark = _TIFF_MARK_RE.search(page.description or "")
+    return mark.group(1) if mark else "srgb"
+
+
+def _to_rgb(image: np.ndarray, path: Path, *, bgr: bool) -> np.ndarray:
+    """(rows, cols[, c]) with c in 1..4 -> (rows, cols) or (rows, cols, 3); drops alpha."""
+    if image.ndim == 3 and image.shape[2] in (1, 2):  # grey, grey + alpha
+        image = image[:, :, 0]
+    elif image.ndim == 3 and image.shape[2] in (3, 4):
+        image = image[:, :, 2::-1] if bgr else image[:, :, :3]
+    elif image.ndim != 2:
+        raise InputError(
+            f"{path}: unsupported image layout {image.shape} (expected grey or RGB[A])"
+        )
+    return np.ascontiguousarray(image)
+
+
+def _read_tiff(path: Path, transfer: str | None) -> np.ndarray:
+    try:
+        with tifffile.TiffFile(path) as tif:
+            page = tif.pages.first
+            _tiff_page_info(page, path)
+            data = page.asarray()
+            mode = _tiff_transfer(page, transfer)
+            axes = page.axes
+    except (tifffile.TiffFileError, OSError, ValueError, struct.error) as err:
+        raise InputError(f"{path}: cannot read TIFF ({type(err).__name__}: {err})") from err
+    if axes == "SYX":
+        data = np.moveaxis(data, 0, -1)
+    return _decode_codes(_to_rgb(data, path, bgr=False), mode, path)
+
+
+def _read_codec(path: Path, kind: str, transfer: str) -> np.ndarray:
+    data = path.read_bytes()
+    if kind == "jpeg":
+        _jpeg_structure(data, path)
+    else:
+        _png_structure(data, path)
+    try:
+        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as err:
+        raise InputError(f"{path}: OpenCV cannot decode it: {err}") from err
+    if image is None:
+        raise InputError(f"{path}: OpenCV cannot decode it (corrupt {kind.upper()} data)")
+    return _decode_codes(_to_rgb(image, path, bgr=True), transfer, path)

@@ -1,0 +1,51 @@
+"""options."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import InputError
+
+METHODS = ("wiener", "rl", "sparse")
+ALIGN_MODES = ("estimate", "analytic", "none")
+
+
+@dataclasses.dataclass(frozen=True)
+class StackOptions:
+    """Options of the main job (the ``flexdof stack`` flags)."""
+
+    lens: str | None = None
+    method: str = "wiener"
+    align: str = "estimate"
+    encoding: str | None = None
+    blur_span_px: float | None = None
+    tile_px: int = 1024
+    align_max_side_px: int = 768
+    save_kernel: Path | None = None
+    sweep_ends: str = "full"
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
+        if self.align not in ALIGN_MODES:
+            raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
+        if self.blur_span_px is not None and not self.blur_span_px > 0:
+            raise InputError(f"blur_span_px must be > 0, got {self.blur_span_px!r}")
+
+
+@dataclasses.dataclass
+class StackResult:
+    output: Path
+    sidecar: dict
+    image: np.ndarray
+
+
+Progress = Callable[[str, int, int], None]
+
+
+def _no_progress(stage: str, done: int, total: int) -> None:
+    """Default progress sink: nothing."""

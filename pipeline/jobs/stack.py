@@ -1,0 +1,334 @@
+"""The main job: a focal stack (or a sweep capture) to an extended-DOF image (Sec. 9).
+
+Data flow (docs/architecture.md)::
+
+    frames -> Stack -> align (homography per frame) -> weights (Sec. 9)
+      -> streaming weighted sum (dask tree reduction) -> sweep image + its IPSF
+      -> deconvolve (tiled) -> output + JSON sidecar
+
+The weighted sum is a binary tree of merges over per-frame leaves (read, warp,
+weight), so at most a few frames are in memory at once whatever the stack's
+length. The same graph runs on the local threaded scheduler or on a
+``dask.distributed`` cluster (``scheduler="tcp://..."``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import cv2
+import dask
+import numpy as np
+
+from pipeline.core import align, defocus
+from pipeline.core.lens import Lens
+from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
+from pipeline.core.weights import constant_speed_weights
+from pipeline.errors import InputError
+from pipeline.io.exif import read_exif
+from pipeline.io.profiles import load_lens
+from pipeline.io.read import read_preview
+from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
+from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
+from pipeline.jobs.result import check_output, restore_image, write_result
+from pipeline.jobs.sweep import process_sweep_stack
+from pipeline.parallel.accumulate import weighted_sum_graph
+from pipeline.parallel.scheduler import _TaskProgress
+
+log = logging.getLogger(__name__)
+
+PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
+
+
+# ----------------------------------------------------------------------------- positions
+def _resolve_lens(stack: Stack, options: StackOptions) -> Lens | None:
+    if options.lens is not None:
+        return load_lens(options.lens)  # a path given by the user: relative to the cwd
+    return stack.lens_profile
+
+
+def _sidecar_positions(stack: Stack, lens: Lens | None) -> tuple[np.ndarray | None, bool]:
+    """(positions, absolute) from stack.toml/EXIF; uncalibrated focus steps stay in steps."""
+    kinds = {frame.position_kind for frame in stack.frames}
+    if kinds == {"focus_step"} and (lens is None or lens.step_image_distance_um is None):
+        return np.array([f.focus_step for f in stack.frames], dtype=np.float64), False
+    found = image_distances_mm(stack, lens)
+    if found is None:
+        return None, False
+    return found.image_distances_mm, not found.relative
+
+
+# ----------------------------------------------------------------------------- previews
+def read_previews(
+    files: Sequence[Path], max_side_px: int, progress: Progress = _no_progress
+) -> list[np.ndarray]:
+    """Reduced grey copies of every frame, decoded in parallel (one cheap decode each)."""
+    with _TaskProgress("read_preview", lambda done: progress("preview", done, len(files))):
+        return list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
+
+
+def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
+    """Aligned copies at the defocus-fit resolution, and their downscale factor."""
+    factor = max(full_shape[:2]) / PREVIEW_SIDE_PX
+    small = []
+    for preview, alignment in zip(previews, alignments):
+        size = (max(1, round(full_shape[1] / factor)), max(1, round(full_shape[0] / factor)))
+        reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
+        h = align.rescale_homography(alignment.homography, full_shape[:2], reduced.shape)
+        small.append(align.warp(reduced, h, reduced.shape))
+    return small, factor
+
+
+# ----------------------------------------------------------------------------- phases
+@dataclasses.dataclass
+class AlignedStack:
+    """A loaded stack with its focus positions and its frames' homographies.
+
+    The common first half of every job that averages a focal stack
+    (:func:`process_stack`, :func:`pipeline.jobs.dof.process_dof`).
+    """
+
+    stack: Stack
+    lens: Lens | None
+    shape: tuple[int, ...]
+    positions: np.ndarray
+    absolute: bool  # positions are image distances (mm), not steps or frame order
+    positions_source: str
+    alignments: list[align.Alignment]
+    previews: list[np.ndarray] | None
+    timings: dict[str, float]
+    start: float
+
+
+def load(paths, options: StackOptions) -> tuple[Stack, Lens | None, float]:
+    """The stack at ``paths``, its lens (``--lens`` first, then stack.toml), the start time."""
+    start = time.perf_counter()
+    stack = load_stack(paths)
+    return stack, _resolve_lens(stack, options), start
+
+
+def align_stack(
+    stack: Stack,
+    lens: Lens | None,
+    options: StackOptions,
+    start: float,
+    *,
+    progress: Progress = _no_progress,
+    previews_needed: bool = False,
+) -> AlignedStack:
+    """Check the frames, find their focus positions and align them (Sec. 9).
+
+    Positions come from stack.toml/EXIF; without them, from the measured
+    magnifications (:func:`positions_from_scales`). ``previews_needed`` keeps the
+    reduced grey copies (the blur-span fit uses them) even with ``--align`` other
+    than ``estimate``.
+    """
+    shape = check_frames(stack).shape
+    positions, absolute = _sidecar_positions(stack, lens)
+    t0 = time.perf_counter()
+    previews = None
+    if options.align == "estimate" or previews_needed:
+        previews = read_previews(stack.files, options.align_max_side_px, progress)
+    progress("align", 0, 1)
+    alignments = _align(stack, options, positions, absolute, previews, shape)
+    progress("align", 1, 1)
+    timings = {"align": time.perf_counter() - t0}
+    positions_source = stack.positions_source or "stack.toml"
+    if positions is None:
+        positions, positions_source = positions_from_scales(np.array([a.scale for a in alignments]))
+        absolute = False
+    return AlignedStack(
+        stack,
+        lens,
+        shape,
+        positions,
+        absolute,
+        positions_source,
+        alignments,
+        previews,
+        timings,
+        start,
+    )
+
+
+def accumulate(
+    aligned: AlignedStack,
+    weights: np.ndarray,
+    options: StackOptions,
+    *,
+    progress: Progress = _no_progress,
+) -> tuple[np.ndarray, np.ndarray]:
+    """``sum_i w_i warp(frame_i)`` streamed through dask, and the pixels clipped in any frame.
+
+    ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
+    """
+    t0 = time.perf_counter()
+    per_frame = weights if weights.ndim == 1 else weights.T  # (frames,) or (frames, rows)
+    graph = weighted_sum_graph(
+        aligned.stack.files,
+        [None if options.align == "none" else a.homography for a in aligned.alignments],
+        per_frame,
+        aligned.shape,
+    )
+    used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
+    progress("accumulate", 0, used)
+    with _TaskProgress("_warped_leaf", lambda done: progress("accumulate", done, used)):
+        ((average, clipped, read_s),) = dask.compute(graph)
+    progress("accumulate", used, used)
+    aligned.timings["accumulate"] = time.perf_counter() - t0
+    aligned.timings["read"] = read_s  # full-resolution decoding, summed over worker threads
+    return average, clipped
+
+
+def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, options) -> dict:
+    """The sidecar's description of the inputs, frames, weights and alignment."""
+    frames_meta = [
+        {
+            "file": str(frame.file.name),
+            "position": float(p),
+            "weight": float(np.mean(w)),
+            "scale": float(a.scale),
+            "homography": a.homography.tolist(),
+            "alignment": a.method if a.ok else f"fallback: {a.message}",
+        }
+        for frame, p, w, a in zip(
+            aligned.stack.frames,
+            aligned.positions,
+            weights if weights.ndim == 1 else weights.T,
+            aligned.alignments,
+        )
+    ]
+    if aligned.absolute:
+        for meta, p in zip(frames_meta, aligned.positions):
+            meta["image_distance_mm"] = float(p)
+    lens = aligned.lens
+    return {
+        "version": 1,
+        "inputs": [str(f) for f in aligned.stack.files],
+        "lens": (lens.source or lens.name) if lens else None,
+        "method": method,
+        "align": options.align,
+        "positions_source": aligned.positions_source,
+        "frames": frames_meta,
+        "partial_stack": aligned.stack.partial,
+    }
+
+
+# ----------------------------------------------------------------------------- main job
+def process_stack(
+    paths: Sequence[str | Path] | str | Path,
+    output: str | Path,
+    options: StackOptions | None = None,
+    *,
+    progress: Progress = _no_progress,
+) -> StackResult:
+    """Focal stack (or sweep capture) -> extended-DOF image at ``output`` + ``output.json``.
+
+    Align the frames, average them with the weights of a constant-speed sweep
+    (Sec. 9), deconvolve the average with its IPSF (Eqs. 5-7) and write the image
+    and its sidecar. A stack.toml of kind "sweep" goes to
+    :func:`pipeline.jobs.sweep.process_sweep_stack`.
+
+    Parameters
+    ----------
+    paths : path, glob or sequence of paths
+        A stack directory (with an optional stack.toml), a glob, or frame files.
+    output : path
+        ``.tif``, ``.png`` or ``.jpg``; the sidecar is ``output`` + ``.json``.
+    options : StackOptions, optional
+        The ``flexdof stack`` flags; defaults if omitted.
+    progress : callable(stage, done, total), optional
+        Called as each stage advances.
+
+    Returns
+    -------
+    StackResult
+        The output path, the sidecar dict and the image (float32, linear).
+
+    Notes
+    -----
+    Runs on the current dask scheduler (see
+    :func:`pipeline.parallel.scheduler.scheduler_context`). Nothing is written
+    unless the whole job succeeds; the image and its sidecar are each written
+    atomically.
+
+    Examples
+    --------
+    >>> from pathlib import Path
+    >>> import tempfile
+    >>> sample = Path(__file__).resolve().parents[2] / "stacks" / "motorcycle"
+    >>> with tempfile.TemporaryDirectory() as tmp:
+    ...     result = process_stack(sample, Path(tmp) / "edof.tif")
+    ...     print(result.image.shape, result.sidecar["kernel"]["source"])
+    (250, 370, 3) stack-average
+    """
+    options = StackOptions() if options is None else options
+    output = Path(output)
+    check_output(output)
+    stack, lens, start = load(paths, options)
+    if stack.kind == "sweep":
+        return process_sweep_stack(stack, lens, output, options, progress=progress)
+    absolute_known = lens is not None and _sidecar_positions(stack, lens)[1]
+    needs_fit = not absolute_known and options.blur_span_px is None
+    aligned = align_stack(stack, lens, options, start, progress=progress, previews_needed=needs_fit)
+    positions, timings = aligned.positions, aligned.timings
+    weights = constant_speed_weights(positions, ends=options.sweep_ends)
+
+    t0 = time.perf_counter()
+    blur_span = options.blur_span_px
+    if needs_fit:
+        n = len(stack)
+        if n < 2:
+            raise InputError(
+                f"{stack.files[0]}: a focal stack needs at least two frames focused at different "
+                "depths (got one); for a single sweep capture use flexdof sweep"
+            )
+        if np.ptp(positions) == 0:
+            raise InputError(
+                f"{stack.base_dir}: all {n} frames have the same focus position: nothing to sweep"
+            )
+        small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+        blur_span = defocus.estimate_blur_span(small, positions, downscale=factor)
+        log.info("estimated blur span: %.1f px across the stack", blur_span)
+    kernel, kernel_samples, kernel_summary = stack_kernel(
+        positions, weights, lens=lens, absolute=aligned.absolute, blur_span_px=blur_span
+    )
+    timings["kernel"] = time.perf_counter() - t0
+
+    average, clipped = accumulate(aligned, weights, options, progress=progress)
+
+    progress("deconvolve", 0, 1)
+    t0 = time.perf_counter()
+    result = restore_image(average, kernel, options, clipped=clipped, kernel_samples=kernel_samples)
+    timings["deconvolve"] = time.perf_counter() - t0
+    progress("deconvolve", 1, 1)
+    sidecar = stack_sidecar(aligned, weights, options.method, options)
+    sidecar["kernel"] = kernel_summary
+    exif = read_exif(stack.files[0])
+    return write_result(output, result, kernel, sidecar, timings, start, options, exif)
+
+
+def _align(stack, options, positions, absolute, previews, shape):
+    """Per-frame homographies to the middle frame (Sec. 9), at full resolution."""
+    n = len(stack)
+    if options.align == "none":
+        return align.analytic_alignment(np.ones(n), shape)  # identities
+    if options.align == "analytic":
+        if positions is None or not absolute:
+            raise InputError(
+                f"{stack.base_dir}: --align analytic needs absolute focus positions "
+                "(image or focus distances in stack.toml); use --align estimate"
+            )
+        return align.analytic_alignment(positions, shape)
+    estimated = align.estimate_alignment(previews, max_side_px=options.align_max_side_px)
+    alignments = []
+    for path, a in zip(stack.files, estimated):
+        if not a.ok:
+            log.warning("frame %s: alignment fell back (%s)", path.name, a.message)
+        h = align.rescale_homography(a.homography, previews[0].shape, shape[:2])
+        alignments.append(dataclasses.replace(a, homography=h))
+    return alignments

@@ -1,0 +1,68 @@
+"""accumulate."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import dask
+import numpy as np
+
+from pipeline.core import align
+from pipeline.io.read import read_frame
+
+SATURATION = 0.999  # normalised level at and above which a pixel is treated as clipped
+
+
+# ----------------------------------------------------------------------------- frame leaves
+def _warped_leaf(path: str, homography, weight, shape):
+    """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode time.
+
+    ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
+    """
+    t0 = time.perf_counter()
+    frame = read_frame(path)
+    read_s = time.perf_counter() - t0
+    if homography is not None:
+        frame = align.warp(frame, homography, shape)
+    clipped = clipped_pixels(frame)
+    if np.ndim(weight) == 0:
+        frame *= np.float32(weight)
+    else:
+        frame *= np.asarray(weight, np.float32).reshape((-1,) + (1,) * (frame.ndim - 1))
+    return frame, clipped, read_s
+
+
+def _merge(a, b):
+    """Sum two partial weighted sums (in place), OR their clipped masks, add decode times."""
+    np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
+    np.logical_or(a[1], b[1], out=a[1])
+    return a[0], a[1], a[2] + b[2]
+
+
+def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
+    """A dask graph for ``sum_i w_i warp(frame_i)`` as a binary tree of merges.
+
+    ``weights[i]`` is frame i's weight, a number or one per row. Frames whose
+    weights are all zero are not read. Returns a Delayed yielding
+    ``(sum, clipped_any_frame, decode_seconds)``.
+    """
+    level = [
+        dask.delayed(_warped_leaf, pure=True)(
+            str(path), h, float(w) if np.ndim(w) == 0 else np.asarray(w), tuple(shape)
+        )
+        for path, h, w in zip(files, homographies, weights)
+        if np.max(w) > 0
+    ]
+    while len(level) > 1:
+        merged = [dask.delayed(_merge)(level[i], level[i + 1]) for i in range(0, len(level) - 1, 2)]
+        if len(level) % 2:
+            merged.append(level[-1])
+        level = merged
+    return level[0]
+
+
+def clipped_pixels(image: np.ndarray) -> np.ndarray:
+    """Pixels at the clipping level in any channel."""
+    return np.any(image >= SATURATION, axis=-1) if image.ndim == 3 else image >= SATURATION
