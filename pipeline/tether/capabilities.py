@@ -119,22 +119,25 @@ def _why(vendor: str, ops: frozenset[int], missing: tuple[int, ...]) -> str:
     lacks = f"(lacks {_names(missing, vendor)})"
     if vendor == "canon":
         if all(op in missing for op in _CANON_REMOTE):
-            return f"no EOS remote-control protocol (older Canon PTP) {lacks}"
+            return f"no EOS remote-control operations (older Canon PTP protocol) {lacks}"
         if CanonOC.DriveLens in missing:
-            live = any(op in ops for op in CanonLiveViewOC)
-            what = "live view but no lens drive" if live else "no live view / lens drive"
-            return f"{what} over USB {lacks}"
+            if any(op in ops for op in CanonLiveViewOC):
+                return f"live view but no DriveLens in GetDeviceInfo {lacks}"
+            return f"no live view or DriveLens in GetDeviceInfo {lacks}"
         if any(op in missing for op in _CANON_RELEASE):
             if CanonOC.RemoteRelease in ops:
                 return f"only the one-shot RemoteRelease, no RemoteReleaseOn/Off {lacks}"
-            return f"no remote release {lacks}"
+            return f"no RemoteReleaseOn/Off {lacks}"
     if vendor == "nikon":
+        if not any(0x9000 <= op < 0x9800 for op in ops):
+            return ("lists no Nikon vendor operations (live view, MfDrive and SDRAM capture "
+                    f"hidden) {lacks}")
         if any(op in missing for op in _NIKON_LIVE):
-            return f"hides live view / MfDrive from GetDeviceInfo {lacks}"
+            return f"no live view / MfDrive in GetDeviceInfo {lacks}"
         if NikonOC.InitiateCaptureRecInSdram in missing:
             return f"no capture into SDRAM {lacks}"
         if missing == (NikonOC.TerminateCapture,):
-            return f"cannot end a bulb exposure over USB {lacks}"
+            return f"no TerminateCapture: cannot end a bulb exposure over USB {lacks}"
     return f"missing operations {lacks}"
 
 

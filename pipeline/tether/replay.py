@@ -151,9 +151,9 @@ def _row_bytes(line: _Line, expected_offset: int, count: int, where: str) -> byt
             f"{where}:{line.number}: hex dump row offset 0x{offset:04x}, expected "
             f"0x{expected_offset:04x} (rows missing or out of order)"
         )
-    tokens = []
+    tokens: list[str] = []  # the bytes; the "-" after the 8th byte and the ASCII column follow
     for word in (match.group(2) or "").split():
-        tokens += [part for part in word.split("-") if part] if len(tokens) < count else []
+        tokens += [part for part in word.split("-") if part]
         if len(tokens) >= count:
             break
     tokens = tokens[:count]
