@@ -482,6 +482,7 @@ class Unrecorded:
     data_out: bytes | None
 
     def describe(self, vendor: str | None = None) -> str:
+        """``"SetRemoteMode (0x9114)(0x2)"``, with the data phase in hex if there was one."""
         params = ", ".join(f"0x{p:x}" for p in self.params)
         data = f" + data {self.data_out.hex()}" if self.data_out is not None else ""
         return f"{operation_name(self.code, vendor)}({params}){data}"
@@ -561,6 +562,7 @@ class ReplayCamera:
     # --- bulk out -----------------------------------------------------------------------
 
     def host_write(self, data: bytes) -> int:
+        """Bulk-out: collect containers; answer a command (after its data phase, if recorded)."""
         if not data:
             self._expect_zlp = False  # the zero-length packet after a full-packet container
             return 0
@@ -634,6 +636,7 @@ class ReplayCamera:
     # --- bulk in ------------------------------------------------------------------------
 
     def host_read(self, size: int) -> bytes:
+        """Bulk-in: the queued data/response containers, then a zero-length packet if due."""
         if not (self._out or self._zlp_due):
             raise usb.core.USBTimeoutError("Operation timed out", *_TIMEOUT)
         if not self._out:
@@ -652,6 +655,7 @@ class ReplayCamera:
     # --- class requests -----------------------------------------------------------------
 
     def class_request(self, request: int, data: bytes | None) -> bytes | int:
+        """Still Image class requests: cancel and reset drop queued answers; status is OK."""
         if request in (ClassRequest.CANCEL, ClassRequest.DEVICE_RESET):
             self._out, self._out_pos, self._zlp_due, self._command = [], 0, False, None
             return len(data or b"")
@@ -790,3 +794,38 @@ class ReplayBackend(usb.backend.IBackend):
 
     def reset_device(self, dev_handle):
         return None
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m pipeline.tether.replay LOG``: list the transactions of a recording.
+
+    Use it to check a new recording before writing tests against it; a
+    malformed log prints the one-line :class:`RecordingError` and returns 1.
+    """
+    import sys
+
+    args = sys.argv[1:] if argv is None else argv
+    if len(args) != 1:
+        print("usage: python -m pipeline.tether.replay GPHOTO2_DEBUG_LOG", file=sys.stderr)
+        return 2
+    try:
+        rec = load_recording(args[0])
+    except RecordingError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 1
+    info = rec.device_info
+    vendor = USB_VENDOR_IDS.get(rec.id_vendor or 0)
+    ids = (f"{rec.id_vendor:04x}:{rec.id_product:04x}" if rec.id_vendor is not None
+           else "USB ids not in the log")
+    print(f"{rec.path.name}: {info.model if info else 'no GetDeviceInfo'} ({ids}), "
+          f"{len(rec.transactions)} transactions in {1 + max(t.run for t in rec.transactions)} "
+          "run(s)")
+    for t in rec.transactions:
+        phases = "".join(f" [{label} {len(blob)} B]" for label, blob in
+                         (("out", t.data_out), ("in", t.data_in)) if blob is not None)
+        print(f"  run {t.run}: {t.describe(vendor)}{phases}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
