@@ -88,8 +88,8 @@ class ReplayMismatch(TetherError):
 
 # --- log text -> logical lines ------------------------------------------------------------
 
-_NUMBERED = re.compile(r"^\s+(\d+)\.(?:\s(.*))?$")
-_NUMBERED_LOG_LINE = re.compile(r"^\s+\d+\.\s+\d+\.\d+\s")
+_NUMBERED = re.compile(r"^\s*(\d+)\.(?:\s(.*))?$")
+_NUMBERED_LOG_LINE = re.compile(r"^\s*\d+\.\s+\d+\.\d+\s")
 _LINK_MARKER = re.compile(r"\[\d+\]")
 _TIMESTAMP = re.compile(r"^(\d+\.\d+)\s")
 _WRITE = re.compile(r"\bWriting (\d+)=0x([0-9a-fA-F]+) byte")
