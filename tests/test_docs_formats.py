@@ -19,15 +19,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from pipeline.core.lens import MECHANISMS, PSF_MODELS, SHUTTERS, Lens
+from pipeline.io.profiles import _SCHEMA as LENS_SCHEMA
+from pipeline.io.profiles import available_lenses, load_lens
+from pipeline.io.stackfile import (
+    _FRAME_KEYS,
+    _SWEEP_KEYS,
+    _SWEEP_PAIRS,
+    KINDS,
+    SWEEP_PROFILES,
+    load_stack,
+)
+from pipeline.io.stackfile import _TOP_KEYS as STACK_TOP_KEYS
+from pipeline.io.write import WRITE_ENCODINGS, write_image
+
 # --- names under test (modules may move: rewrite only this block) ---------------------------
-from pipeline.engine import ALIGN_MODES, METHODS, StackOptions, process_stack, scheduler_context
-from pipeline.io import WRITE_ENCODINGS, write_image
-from pipeline.ledger import LEDGER_NAME, LOCK_NAME
-from pipeline.profiles import _SCHEMA as LENS_SCHEMA
-from pipeline.profiles import MECHANISMS, PSF_MODELS, SHUTTERS, Lens, available_lenses, load_lens
-from pipeline.stack import _FRAME_KEYS, _SWEEP_KEYS, _SWEEP_PAIRS, KINDS, SWEEP_PROFILES, load_stack
-from pipeline.stack import _TOP_KEYS as STACK_TOP_KEYS
-from pipeline.workflow import (
+from pipeline.jobs.options import ALIGN_MODES, METHODS, StackOptions
+from pipeline.jobs.stack import process_stack
+from pipeline.parallel.scheduler import scheduler_context
+from pipeline.workflow.ledger import LEDGER_NAME, LOCK_NAME
+from pipeline.workflow.schema import (
     _INPUT_KEYS,
     _NAME_FIELDS,
     _OPTION_KEYS,
@@ -36,7 +47,7 @@ from pipeline.workflow import (
     _SCHEDULE_KEYS,
     load_workflow,
 )
-from pipeline.workflow import _TOP_KEYS as WORKFLOW_TOP_KEYS
+from pipeline.workflow.schema import _TOP_KEYS as WORKFLOW_TOP_KEYS
 
 # ---------------------------------------------------------------------------------------------
 

@@ -69,7 +69,7 @@ def test_image_position_change_matches_chief_ray_trace():
     angle = math.atan(corner_mm / p_far)
     shift_px = (p_near * math.tan(angle) - corner_mm) / (pitch * 1e-3)
     got = optics.image_position_change_px(
-        f, near, far, pixel_pitch_um=pitch, width_px=w, height_px=h
+        f, near, far, width_px=w, height_px=h
     )
     assert got == pytest.approx(shift_px)
 

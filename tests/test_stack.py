@@ -5,7 +5,6 @@ from __future__ import annotations
 import logging
 import math
 
-import dask
 import numpy as np
 import pytest
 from PIL import Image
@@ -13,7 +12,6 @@ from PIL.TiffImagePlugin import IFDRational
 
 from pipeline.errors import InputError
 from pipeline.io.profiles import load_lens
-from pipeline.io.read import read_frame
 from pipeline.io.stackfile import (
     Frame,
     check_frames,
@@ -322,8 +320,6 @@ def test_frames_of_different_sizes(tmp_path):
     stack = load_stack(tmp_path)
     with pytest.raises(InputError, match=r"a_3\.png: 9x6 px, 1 channel.*expect 8x6 px"):
         check_frames(stack)
-    with pytest.raises(InputError, match=r"a_3\.png"):
-        stack.to_dask()
 
 
 def test_frames_of_different_channels(tmp_path):
@@ -340,19 +336,3 @@ def test_frames_with_a_truncated_file(tmp_path, shared_data):
     (tmp_path / "pcb_002.jpg").write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError, match=r"pcb_002\.jpg: truncated JPEG"):
         check_frames(load_stack(tmp_path))
-
-
-def test_to_dask_matches_read_frame_pcb7(shared_data):
-    stack = load_stack([str(shared_data / "focusstack-pcb" / "pcb7" / "pcb_*.jpg")])
-    lazy = stack.to_dask()
-    assert lazy.shape == (7, 1536, 2048, 3) and lazy.dtype == np.float32
-    assert lazy.chunks[0] == (1,) * 7 and lazy.numblocks == (7, 1, 1, 1)
-    with dask.config.set(scheduler="threads", num_workers=2):
-        frames = lazy.compute()
-    assert frames.dtype == np.float32
-    for i, frame in enumerate(stack.frames):
-        np.testing.assert_array_equal(frames[i], read_frame(frame.file))
-    np.testing.assert_array_equal(stack.read(3), frames[3])
-    # A reduction over the stack streams frame by frame and agrees with numpy.
-    mean = stack.to_dask()[:, ::8, ::8].mean(axis=0).compute()
-    np.testing.assert_allclose(mean, frames[:, ::8, ::8].mean(axis=0), rtol=1e-5)

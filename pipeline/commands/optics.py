@@ -45,7 +45,6 @@ def sweep_geometry(lens, near_mm: float, far_mm: float, coc_um: float) -> dict:
             lens.focal_length_mm,
             near_mm,
             far_mm,
-            pixel_pitch_um=lens.pixel_pitch_um,
             width_px=lens.width_px,
             height_px=lens.height_px,
         ),

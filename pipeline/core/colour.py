@@ -1,4 +1,5 @@
-"""colour."""
+"""The sRGB transfer function (IEC 61966-2-1), both ways, in float32 or float64.
+"""
 
 from __future__ import annotations
 

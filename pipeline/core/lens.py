@@ -1,10 +1,13 @@
-"""lens."""
+"""The lens and sensor of a camera (the paper's four setups are in lens_profiles/):
+focal length, f-number, pixel pitch, sensor size, shutter, PSF model, focus drive.
+"""
 
 from __future__ import annotations
 
 import dataclasses
 import math
 
+from pipeline.core import optics, validate
 from pipeline.errors import InputError
 
 SHUTTERS = ("global", "rolling")
@@ -14,7 +17,7 @@ MECHANISMS = ("detector", "lens")
 
 @dataclasses.dataclass(frozen=True)
 class Lens:
-    """A lens on a camera body, in the units of DESIGN.md (mm, um, px, s).
+    """A lens on a camera body, in millimetres, micrometres, pixels and seconds (docs/formats.md).
 
     Parameters
     ----------
@@ -79,8 +82,9 @@ class Lens:
             )
         if self.step_image_distance_um is not None:
             _require_positive("step_image_distance_um", self.step_image_distance_um, self.source)
-        _require_positive("max_speed_mm_s", self.max_speed_mm_s, self.source)
-        _require_positive("travel_mm", self.travel_mm, self.source)
+        # an actuator without a speed or travel limit: inf
+        _require_positive("max_speed_mm_s", self.max_speed_mm_s, self.source, allow_inf=True)
+        _require_positive("travel_mm", self.travel_mm, self.source, allow_inf=True)
 
     @property
     def aperture_mm(self) -> float:
@@ -91,9 +95,14 @@ class Lens:
     def pixel_pitch_mm(self) -> float:
         return self.pixel_pitch_um * 1e-3
 
-    @property
-    def sensor_width_mm(self) -> float:
-        return self.width_px * self.pixel_pitch_mm
+    def blur_px(self, image_distance_mm, detector_distance_mm):
+        """Blur-circle diameter in pixels, ``a |v - p| / v`` over the pitch (Eq. 2).
+
+        ``image_distance_mm`` is ``v``, where the point focuses; ``detector_distance_mm``
+        is the detector's position ``p`` (see :func:`pipeline.core.optics.blur_diameter_mm`).
+        """
+        b = optics.blur_diameter_mm(self.aperture_mm, image_distance_mm, detector_distance_mm)
+        return b / self.pixel_pitch_mm
 
     @property
     def sensor_height_mm(self) -> float:
@@ -114,11 +123,9 @@ def _where(source: str) -> str:
     return f"{source}: " if source else ""
 
 
-def _require_positive(name: str, value: object, source: str = "") -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-        raise InputError(f"{_where(source)}{name} must be a positive number, got {value!r}")
+def _require_positive(name: str, value: object, source: str = "", *, allow_inf=False) -> None:
+    validate.positive(name, value, allow_inf=allow_inf, where=_where(source))
 
 
 def _require_non_negative(name: str, value: object, source: str = "") -> None:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not value >= 0:
-        raise InputError(f"{_where(source)}{name} must be a number >= 0, got {value!r}")
+    validate.non_negative(name, value, where=_where(source))

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.core import optics
+from pipeline.core import optics, validate
 from pipeline.core.lens import Lens
 from pipeline.errors import InputError
 
@@ -114,15 +114,9 @@ class Profile:
 
 def constant_speed(start_image_distance_mm: float, speed_mm_s: float, exposure_s: float) -> Profile:
     """p(t) = p(0) + s t for ``0 <= t <= T`` (Sec. 4.1); ``speed_mm_s`` may be 0 or negative."""
-    for name, value in (
-        ("start_image_distance_mm", start_image_distance_mm),
-        ("speed_mm_s", speed_mm_s),
-        ("exposure_s", exposure_s),
-    ):
-        if not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise InputError(f"{name} must be a finite number, got {value!r}")
-    if exposure_s <= 0:
-        raise InputError(f"exposure_s must be > 0, got {exposure_s!r}")
+    validate.finite("start_image_distance_mm", start_image_distance_mm)
+    validate.finite("speed_mm_s", speed_mm_s)
+    validate.positive("exposure_s", exposure_s)
     end = start_image_distance_mm + speed_mm_s * exposure_s
     return Profile([0.0, exposure_s], [start_image_distance_mm, end])
 
@@ -166,8 +160,7 @@ def _check_depth_range(near_mm: float, far_mm: float, lens: Lens, name: str) -> 
 
 
 def _check_positive_time(name: str, value: float) -> None:
-    if not isinstance(value, (int, float)) or not math.isfinite(value) or value <= 0:
-        raise InputError(f"{name} must be a finite number of seconds > 0, got {value!r}")
+    validate.positive(name, value)
 
 
 def plan_extended_dof(lens: Lens, near_mm: float, far_mm: float, exposure_s: float) -> Profile:

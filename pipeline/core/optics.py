@@ -10,16 +10,8 @@ import math
 
 import numpy as np
 
+from pipeline.core.validate import positive_array
 from pipeline.errors import InputError
-
-
-def _check_positive(name: str, value) -> np.ndarray:
-    arr = np.asarray(value, dtype=np.float64)
-    if np.any(np.isnan(arr)):
-        raise InputError(f"{name} must not be NaN, got {value!r}")
-    if np.any(arr <= 0):
-        raise InputError(f"{name} must be > 0, got {value!r}")
-    return arr
 
 
 def _out(arr: np.ndarray):
@@ -36,8 +28,8 @@ def image_distance(focal_length_mm: float, focus_distance_mm):
     InputError
         If ``focus_distance_mm <= focal_length_mm``: such a point forms no real image.
     """
-    f = float(_check_positive("focal_length_mm", focal_length_mm))
-    u = _check_positive("focus_distance_mm", focus_distance_mm)
+    f = float(positive_array("focal_length_mm", focal_length_mm))
+    u = positive_array("focus_distance_mm", focus_distance_mm)
     if np.any(u <= f):
         raise InputError(
             f"focus_distance_mm must exceed the focal length {f} mm (no real image otherwise), "
@@ -50,8 +42,8 @@ def image_distance(focal_length_mm: float, focus_distance_mm):
 
 def focus_distance(focal_length_mm: float, image_distance_mm):
     """Depth ``u`` in focus when the detector is at ``v`` (Eq. 1); ``v = f`` gives ``inf``."""
-    f = float(_check_positive("focal_length_mm", focal_length_mm))
-    v = _check_positive("image_distance_mm", image_distance_mm)
+    f = float(positive_array("focal_length_mm", focal_length_mm))
+    v = positive_array("image_distance_mm", image_distance_mm)
     if np.any(v < f):
         raise InputError(
             f"image_distance_mm must be >= the focal length {f} mm (nothing is in focus closer), "
@@ -68,9 +60,9 @@ def blur_diameter_mm(aperture_mm: float, image_distance_mm, detector_distance_mm
     ``image_distance_mm`` is ``v``, where the point would focus; ``detector_distance_mm``
     is the detector's position ``p``.
     """
-    a = _check_positive("aperture_mm", aperture_mm)
-    v = _check_positive("image_distance_mm", image_distance_mm)
-    p = _check_positive("detector_distance_mm", detector_distance_mm)
+    a = positive_array("aperture_mm", aperture_mm)
+    v = positive_array("image_distance_mm", image_distance_mm)
+    p = positive_array("detector_distance_mm", detector_distance_mm)
     return _out(a / v * np.abs(v - p))  # Eq. 2
 
 
@@ -91,7 +83,6 @@ def image_position_change_px(
     near_mm: float,
     far_mm: float,
     *,
-    pixel_pitch_um: float,
     width_px: int,
     height_px: int,
 ) -> float:
@@ -110,7 +101,6 @@ def image_position_change_px(
     """
     translation = sweep_translation(focal_length_mm, near_mm, far_mm)
     p_far = image_distance(focal_length_mm, far_mm)
-    _check_positive("pixel_pitch_um", pixel_pitch_um)
     half_diagonal_px = 0.5 * math.hypot(width_px, height_px)
     return half_diagonal_px * translation / p_far
 
@@ -126,8 +116,8 @@ def depth_of_field(
     The far limit is ``inf`` when ``p a / (a + c) <= f``; the near limit is the lens
     (``f``) when ``c >= a``.
     """
-    _check_positive("f_number", f_number)
-    _check_positive("coc_mm", coc_mm)
+    positive_array("f_number", f_number)
+    positive_array("coc_mm", coc_mm)
     a = focal_length_mm / f_number
     p = image_distance(focal_length_mm, focus_distance_mm)
     v_far = p * a / (a + coc_mm)
@@ -142,8 +132,8 @@ def detector_tilt_deg(speed_mm_s: float, readout_s: float, sensor_height_mm: flo
     ``readout_s`` is ``T``, the delay between the first and last row; the sign
     follows ``speed_mm_s``.
     """
-    _check_positive("readout_s", readout_s)
-    _check_positive("sensor_height_mm", sensor_height_mm)
+    positive_array("readout_s", readout_s)
+    positive_array("sensor_height_mm", sensor_height_mm)
     if not math.isfinite(speed_mm_s):
         raise InputError(f"speed_mm_s must be finite, got {speed_mm_s!r}")
     return math.degrees(math.atan(speed_mm_s * readout_s / sensor_height_mm))  # Eq. 9
@@ -183,7 +173,7 @@ def speed_for_focal_plane_tilt(
 
     ``tan(theta) = tan(phi) (2 p(0) - 2 f) / (2 f - H tan(phi))`` and ``s = H tan(theta) / T``.
     """
-    _check_positive("readout_s", readout_s)
+    positive_array("readout_s", readout_s)
     f, p0, h = focal_length_mm, start_image_distance_mm, sensor_height_mm
     if p0 <= f:
         raise InputError(f"start_image_distance_mm must exceed f={f} mm, got {p0!r}")

@@ -46,7 +46,7 @@ import math
 import numpy as np
 from scipy import special
 
-from pipeline.core import optics
+from pipeline.core import optics, validate
 from pipeline.core.lens import PSF_MODELS, Lens
 from pipeline.core.motion import Profile
 from pipeline.errors import InputError
@@ -347,7 +347,7 @@ def lens_psf(
     _check_model(model)
     _check_depth(depth_mm)
     v = optics.image_distance(lens.focal_length_mm, depth_mm)
-    b_px = optics.blur_diameter_mm(lens.aperture_mm, v, image_distance_mm) / lens.pixel_pitch_mm
+    b_px = lens.blur_px(v, image_distance_mm)
     half = _resolve_size(size, b_px, model, lens.gaussian_g) // 2
     if model == "pillbox":
         return _normalise(raster_pillbox(b_px, half))
@@ -409,11 +409,9 @@ def integrated_psf(
         )
     if method not in ("auto", "analytic", "numeric"):
         raise InputError(f"method must be 'auto', 'analytic' or 'numeric', got {method!r}")
-    for name, order in (("theta_order", theta_order), ("time_order", time_order)):
-        if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or order < 1:
-            raise InputError(f"{name} must be an integer >= 1, got {order!r}")
-    if not (isinstance(time_step_px, (int, float)) and 0 < time_step_px < math.inf):
-        raise InputError(f"time_step_px must be a number > 0, got {time_step_px!r}")
+    validate.whole("theta_order", theta_order)
+    validate.whole("time_order", time_order)
+    validate.positive("time_step_px", time_step_px)
     pieces = blur_pieces_px(lens, depth_mm, profile)
     max_blur = max(max(b0, b1) for _, b0, b1 in pieces)
     half = _resolve_size(size, max_blur, model, lens.gaussian_g) // 2

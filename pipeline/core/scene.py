@@ -6,7 +6,7 @@ the reference detector position ``p_ref`` (the grid is centred on the optical ax
 depth map is one surface; planar layers are one surface each with a constant depth; a
 tilted or curved surface is a depth map.
 
-Depth conventions: ``math.inf`` is a valid depth (infinitely far, DESIGN.md). Pixels
+Depth conventions: ``math.inf`` is a valid depth (infinitely far). Pixels
 *without* depth are NaN, ``-inf`` or ``<= 0``; the caller chooses what to do with them
 (``missing_depth="fill"``: nearest valid depth; ``"exclude"``: zero radiance and zero
 alpha), there is no default. Real depth maps that mark unknown pixels with ``+inf`` must
@@ -20,11 +20,11 @@ line time, Sec. 6) and an optional :class:`Exposure` (photon level and read nois
 from __future__ import annotations
 
 import dataclasses
-import math
 
 import numpy as np
 from scipy import ndimage
 
+from pipeline.core import validate
 from pipeline.core.lens import PSF_MODELS, SHUTTERS, Lens
 from pipeline.core.motion import Profile
 from pipeline.errors import InputError
@@ -222,14 +222,8 @@ class Exposure:
 
     def __post_init__(self) -> None:
         e, r = self.electrons_at_unit, self.read_noise_e
-        if (
-            isinstance(e, bool)
-            or not isinstance(e, (int, float))
-            or not (e > 0 and math.isfinite(e))
-        ):
-            raise InputError(f"electrons_at_unit must be a finite number > 0, got {e!r}")
-        if isinstance(r, bool) or not isinstance(r, (int, float)) or not (0 <= r < math.inf):
-            raise InputError(f"read_noise_e must be a finite number >= 0, got {r!r}")
+        validate.positive("electrons_at_unit", e)
+        validate.non_negative("read_noise_e", r)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -284,23 +278,18 @@ class Camera:
             raise InputError(
                 f"a rolling shutter needs the lens's line_time_us > 0 ({self.lens.name})"
             )
-        if self.row_exposure_s is not None and not (
-            isinstance(self.row_exposure_s, (int, float)) and self.row_exposure_s > 0
-        ):
-            raise InputError(f"row_exposure_s must be > 0, got {self.row_exposure_s!r}")
+        if self.row_exposure_s is not None:
+            validate.positive("row_exposure_s", self.row_exposure_s)
         if self.exposure is not None and not isinstance(self.exposure, Exposure):
             raise InputError(f"exposure must be an Exposure, got {type(self.exposure).__name__}")
         ref = self.reference_image_distance_mm
-        if ref is not None and not (
-            isinstance(ref, (int, float)) and math.isfinite(ref) and ref > 0
-        ):
-            raise InputError(f"reference_image_distance_mm must be finite and > 0, got {ref!r}")
+        if ref is not None:
+            validate.positive("reference_image_distance_mm", ref)
 
     @classmethod
     def static(cls, lens: Lens, image_distance_mm: float, exposure_s: float, **options) -> Camera:
         """A normal capture: the detector rests at ``image_distance_mm`` for ``exposure_s``."""
-        if not isinstance(exposure_s, (int, float)) or not (0 < exposure_s < math.inf):
-            raise InputError(f"exposure_s must be a finite number > 0, got {exposure_s!r}")
+        validate.positive("exposure_s", exposure_s)
         return cls(lens, Profile([0.0, exposure_s], [image_distance_mm] * 2), **options)
 
     @property

@@ -1,4 +1,6 @@
-"""exif."""
+"""EXIF: read a frame's EXIF block, its SubjectDistance (a focus position), and carry
+it into JPEG and PNG outputs.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""probe."""
+"""What an image file is before decoding it: its kind by extension, its size and
+channels from the header, and truncation (JPEG/PNG structure, RAW, TIFF).
+"""
 
 from __future__ import annotations
 

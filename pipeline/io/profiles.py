@@ -82,7 +82,7 @@ def load_lens(name_or_path: str | Path, *, base_dir: Path | None = None) -> Lens
 
 
 def lens_from_dict(data: dict, *, source: str = "") -> Lens:
-    """Build a :class:`Lens` from the parsed TOML schema of DESIGN.md."""
+    """Build a :class:`Lens` from the parsed TOML schema of a lens profile (docs/formats.md)."""
     fields: dict[str, object] = {"source": source, "name": Path(source).stem or "custom lens"}
     for key, value in data.items():
         if isinstance(value, dict):

@@ -1,7 +1,7 @@
 """Reading and writing images: RAW, TIFF, PNG, JPEG <-> float32 linear light.
 
 Every frame enters the pipeline as float32 linear light, shape ``(rows, cols)``
-or ``(rows, cols, 3)`` (DESIGN.md, units). The weighted average of Sec. 9 and
+or ``(rows, cols, 3)`` (docs/formats.md, units). The weighted average of Sec. 9 and
 the integrated PSF of Eqs. 5-7 are sums of *radiance*, so frames must be
 linear before they are averaged:
 

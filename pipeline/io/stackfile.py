@@ -3,13 +3,13 @@
 A focal stack (Sec. 9) is a set of frames shot at different focus settings;
 the weights that emulate a constant-speed detector sweep need each frame's
 image distance ``v`` (Eq. 1). A sweep capture (Sec. 4, 8) is one frame plus
-the motion during its exposure. ``stack.toml`` (DESIGN.md) gives the lens and
+the motion during its exposure. ``stack.toml`` (docs/formats.md) gives the lens and
 each frame's focus position; without it, frames are taken in natural file-name
 order and positions come from EXIF SubjectDistance when every frame has one,
 else they are unknown (the caller estimates them from the magnification).
 
-Frames are read lazily: :meth:`Stack.to_dask` builds one dask chunk per frame
-from :func:`pipeline.io.read.read_frame`, so a stack never has to fit in memory.
+Frames are read one at a time (:meth:`Stack.read`); the jobs stream them through
+:mod:`pipeline.parallel.accumulate`, so a stack never has to fit in memory.
 """
 
 from __future__ import annotations
@@ -23,10 +23,7 @@ import tomllib
 from collections.abc import Sequence
 from pathlib import Path
 
-import dask
-import dask.array as da
 import numpy as np
-from dask.base import tokenize
 
 from pipeline.core import optics
 from pipeline.core.lens import Lens
@@ -149,22 +146,6 @@ class Stack:
     def read(self, index: int) -> np.ndarray:
         """Decode frame ``index`` (float32 linear light)."""
         return read_frame(self.frames[index].file)
-
-    def to_dask(self) -> da.Array:
-        """The frames as a lazy dask array ``(frames, rows, cols[, 3])`` of float32.
-
-        One chunk per frame, each decoded by :func:`pipeline.io.read.read_frame` when
-        computed. Frame sizes are checked from the headers first
-        (:func:`check_frames`).
-        """
-        info = check_frames(self)
-        chunks = []
-        for frame in self.frames:
-            stat = frame.file.stat()
-            key = "read_frame-" + tokenize(str(frame.file), stat.st_mtime_ns, stat.st_size)
-            lazy = dask.delayed(read_frame)(frame.file, dask_key_name=key)
-            chunks.append(da.from_delayed(lazy, shape=info.shape, dtype=np.float32))
-        return da.stack(chunks)
 
 
 def natural_key(path: str | Path) -> list:

@@ -1,4 +1,6 @@
-"""write."""
+"""Writing results atomically (temporary file + rename): images (16-bit sRGB or linear
+TIFF, float32 TIFF, 8-bit PNG/JPEG) and JSON sidecars.
+"""
 
 from __future__ import annotations
 

@@ -45,6 +45,7 @@ import cv2
 import dask
 from dask.callbacks import Callback
 
+from pipeline.core import validate
 from pipeline.errors import FlexdofError, InputError
 from pipeline.io.hashing import sha256_file
 from pipeline.jobs.options import StackOptions
@@ -221,10 +222,10 @@ def run_batch(
         Called in this thread for every finished stack, and for each stack's
         progress stages.
     """
-    if concurrency is not None and concurrency < 1:
-        raise InputError(f"concurrency must be >= 1, got {concurrency}")
-    if threads_per_stack is not None and threads_per_stack < 1:
-        raise InputError(f"threads_per_stack must be >= 1, got {threads_per_stack}")
+    if concurrency is not None:
+        validate.whole("concurrency", concurrency)
+    if threads_per_stack is not None:
+        validate.whole("threads_per_stack", threads_per_stack)
     address = scheduler or dask.config.get("scheduler-address", None)
     if not jobs:
         return []

@@ -1,4 +1,6 @@
-"""options."""
+"""The options every job over a stack takes (the ``flexdof stack`` flags), its result
+and the progress-callback type.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core import validate
 from pipeline.errors import InputError
 
 METHODS = ("wiener", "rl", "sparse")
@@ -33,8 +36,8 @@ class StackOptions:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.align not in ALIGN_MODES:
             raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
-        if self.blur_span_px is not None and not self.blur_span_px > 0:
-            raise InputError(f"blur_span_px must be > 0, got {self.blur_span_px!r}")
+        if self.blur_span_px is not None:
+            validate.positive("blur_span_px", self.blur_span_px)
 
 
 @dataclasses.dataclass

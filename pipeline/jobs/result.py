@@ -1,4 +1,6 @@
-"""result."""
+"""The end of every job: deconvolve the average (tiled, clipped pixels censored) and
+write the image, the optional kernel and the ``OUT.json`` sidecar.
+"""
 
 from __future__ import annotations
 

@@ -9,7 +9,6 @@ frame uses the same kernel and frames are deconvolved in parallel.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -18,7 +17,7 @@ import cv2
 import dask
 import numpy as np
 
-from pipeline.core import optics, psf, spectra
+from pipeline.core import optics, psf, spectra, validate
 from pipeline.core.colour import linear_to_srgb, srgb_to_linear
 from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile, constant_speed
@@ -65,8 +64,7 @@ def sweep_kernel(
 
 def profile_from_range(lens: Lens, near_mm: float, far_mm: float, exposure_s: float) -> Profile:
     """Constant-speed sweep of the focal plane from ``far_mm`` to ``near_mm`` (Sec. 4.1)."""
-    if not (isinstance(exposure_s, (int, float)) and 0 < exposure_s < math.inf):
-        raise InputError(f"exposure_s must be a finite number > 0 (seconds), got {exposure_s!r}")
+    validate.positive("exposure_s", exposure_s)
     start = optics.image_distance(lens.focal_length_mm, far_mm)
     end = optics.image_distance(lens.focal_length_mm, near_mm)
     if not end > start:

@@ -216,8 +216,8 @@ def render_rolling(scene: Scene, camera: Camera, *, band_rows: int = 8) -> np.nd
         for s in scene.surfaces
     ])
     p_lo, p_hi = camera.motion.range_mm
-    blur_px = lens.aperture_mm * max(np.max(np.abs(v - p_lo) / v), np.max(np.abs(v - p_hi) / v))
-    margin = math.ceil(blur_px / lens.pixel_pitch_mm / 2) + 2  # Eq. 2
+    blur_px = max(np.max(lens.blur_px(v, p_lo)), np.max(lens.blur_px(v, p_hi)))
+    margin = math.ceil(blur_px / 2) + 2
     out = None
     for r0 in range(0, rows, band_rows):
         r1 = min(rows, r0 + band_rows)

@@ -189,7 +189,7 @@ def shifted_ipsf(
         change = abs(p_end - p_start) * max(to_px, abs(offset_px) / v)
         n = max(1, math.ceil(change / step_px))
         for p in p_start + (np.arange(n) + 0.5) / n * (p_end - p_start):
-            diameter = abs(v - p) * to_px * supersample  # Eq. 2
+            diameter = lens.blur_px(v, p) * supersample  # Eq. 2
             half = math.ceil(0.5 * diameter) + 1
             disk = psf.raster_pillbox(diameter, half) * (duration / n)  # Eq. 3
             shift = round(offset_px * (p - v) / v * supersample)

@@ -1,4 +1,7 @@
-"""accumulate."""
+"""The streaming weighted sum of a focal stack (Sec. 9) as a dask graph: per-frame
+leaves (read, warp, weight) merged in a binary tree, so at most a few frames are in
+memory whatever the stack's length.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""scheduler."""
+"""Where dask graphs run (local threads or a ``dask.distributed`` cluster) and
+per-task progress on local schedulers.
+"""
 
 from __future__ import annotations
 
@@ -8,6 +10,7 @@ from collections.abc import Callable
 import dask
 from dask.callbacks import Callback
 
+from pipeline.core import validate
 from pipeline.errors import InputError
 
 
@@ -29,10 +32,8 @@ class _TaskProgress(Callback):
 @contextlib.contextmanager
 def scheduler_context(scheduler: str | None = None, threads: int | None = None):
     """Local threads (default) or a dask.distributed cluster at ``scheduler`` (tcp://...)."""
-    if threads is not None and (
-        isinstance(threads, bool) or not isinstance(threads, int) or threads < 1
-    ):
-        raise InputError(f"--threads must be a whole number >= 1, got {threads!r}")
+    if threads is not None:
+        validate.whole("--threads", threads)
     if scheduler:
         from distributed import Client
 

@@ -1,7 +1,7 @@
 """Focus-step calibration: drive steps -> image distance, from a stack's magnification.
 
 Focusing moves the lens relative to the detector, so a frame's scale relative
-to the reference frame is ``p_i / p_ref`` (Sec. 3, 9; DESIGN.md). With
+to the reference frame is ``p_i / p_ref`` (Sec. 3, 9; docs/formats.md). With
 ``p_ref`` from the lens law (Eq. 1) for the reference focus distance, each
 frame gives ``p_i - p_ref = p_ref (s_i - 1)``; a least-squares line through the
 reference against the frame's drive position gives mm per step.

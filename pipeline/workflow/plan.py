@@ -1,4 +1,6 @@
-"""plan."""
+"""The stacks a workflow names (stack folders or frame files grouped into stacks),
+their output paths, and their input fingerprints.
+"""
 
 from __future__ import annotations
 

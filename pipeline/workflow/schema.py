@@ -1,4 +1,6 @@
-"""schema."""
+"""Workflow files (TOML): their tables and keys, validated with errors that name the
+file and the key (see docs/formats.md).
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""common."""
+"""What every deconvolution method shares: input checks, the clipped-pixel mask, the
+noise estimate, the :class:`Plan`, the padded FFT domain and the filter's reach.
+"""
 
 from __future__ import annotations
 
@@ -7,6 +9,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import fft as sfft
 
+from pipeline.core import spectra, validate
 from pipeline.errors import InputError
 
 METHODS = ("wiener", "rl", "sparse")
@@ -71,11 +74,9 @@ def _check_saturation(saturation) -> float | None:
 
 
 def _check_positive(name: str, value, *, allow_zero: bool = False) -> float:
-    v = float(value)
-    if not np.isfinite(v) or v < 0 or (v == 0 and not allow_zero):
-        bound = ">= 0" if allow_zero else "> 0"
-        raise InputError(f"{name} must be finite and {bound}, got {value!r}")
-    return v
+    if allow_zero:
+        return validate.non_negative(name, value)
+    return validate.positive(name, value)
 
 
 def _per_channel(name: str, value, channels: int) -> np.ndarray | None:
@@ -191,11 +192,7 @@ class Plan:
 # ----------------------------------------------------------------------------- FFT helpers
 def _kernel_fft(kernel: np.ndarray, shape: tuple[int, int], dtype) -> np.ndarray:
     """rfft2 of ``kernel`` centred at pixel (0, 0) of a periodic grid of ``shape``."""
-    grid = np.zeros(shape, dtype=dtype)
-    kr, kc = kernel.shape
-    grid[:kr, :kc] = kernel
-    grid = np.roll(grid, (-(kr // 2), -(kc // 2)), axis=(0, 1))
-    return sfft.rfft2(grid, workers=_WORKERS)
+    return spectra.centred_fft(kernel, shape, real=True, dtype=dtype, workers=_WORKERS)
 
 
 def _tail_depth(h: np.ndarray) -> int:

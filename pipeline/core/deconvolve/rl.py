@@ -1,11 +1,12 @@
-"""rl."""
+"""Richardson-Lucy deconvolution with masked data and unknown boundaries.
+"""
 
 from __future__ import annotations
 
 import numpy as np
 
+from pipeline.core import validate
 from pipeline.core.deconvolve.common import _check_positive, _Domain, _frame_depth
-from pipeline.errors import InputError
 
 # ----------------------------------------------------------------------------- Richardson-Lucy
 _DAMPING_POWER = 10  # White (1994)'s N: sharpness of the damping transition
@@ -51,9 +52,7 @@ def _rl_transfer(iterations: int):
 
 
 def _plan_rl(y, valid, k, sigma, *, iterations=30, damping=None):
-    iterations = int(iterations)
-    if iterations < 0:
-        raise InputError(f"iterations must be >= 0, got {iterations!r}")
+    iterations = validate.whole("iterations", iterations, minimum=0)
     threshold = None
     if damping is not None:
         threshold = _check_positive("damping", damping) * np.maximum(sigma, 1e-12)

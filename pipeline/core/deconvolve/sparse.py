@@ -1,10 +1,12 @@
-"""sparse."""
+"""Deconvolution with a hyper-Laplacian gradient prior by ADMM (the quality method).
+"""
 
 from __future__ import annotations
 
 import numpy as np
 from scipy import fft as sfft
 
+from pipeline.core import validate
 from pipeline.core.deconvolve.common import _WORKERS, _check_positive, _Domain, _frame_depth
 from pipeline.core.deconvolve.wiener import (
     _laplacian_spectrum,
@@ -96,9 +98,7 @@ def _plan_sparse(y, valid, k, sigma, *, alpha=0.8, weight=0.2, iterations=50, rh
     if not 0 < alpha <= 1:
         raise InputError(f"alpha must be in (0, 1], got {alpha!r}")
     weight = _check_positive("weight", weight, allow_zero=True)
-    iterations = int(iterations)
-    if iterations < 1:
-        raise InputError(f"iterations must be >= 1, got {iterations!r}")
+    iterations = validate.whole("iterations", iterations)
     rho = tuple(_check_positive("rho", r) for r in rho)
     s2 = _natural_prior_scale(y, valid, sigma, k)
     # MAP: |M(k*x - y)|^2 / (2 sigma^2) + sum |g / s|^alpha, s the per-direction gradient RMS

@@ -1,4 +1,6 @@
-"""wiener."""
+"""Wiener deconvolution with a natural-image prior and, for depth-dependent IPSFs,
+the kernel variance in its denominator (Sec. 4.2).
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,7 @@
-"""plan."""
+"""Which effects a scene needs at a tolerance (``simulate only the effects a scene
+calls for``): depth layers, occlusion, magnification steps, rolling-shutter rows and
+noise, each with its estimated error (:func:`plan`).
+"""
 
 from __future__ import annotations
 
@@ -10,7 +13,7 @@ import numpy as np
 from scipy import fft as sfft
 from scipy import ndimage
 
-from pipeline.core import optics, psf, spectra
+from pipeline.core import optics, psf, spectra, validate
 from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile
 from pipeline.core.scene import Camera, Exposure, Scene, mean_position
@@ -44,10 +47,7 @@ class _Spectra:
         self.fx = sfft.rfftfreq(self.n)[None, :]
 
     def of(self, kernel: np.ndarray) -> np.ndarray:
-        padded = np.zeros((self.n, self.n))
-        h = kernel.shape[0] // 2
-        padded[: kernel.shape[0], : kernel.shape[1]] = kernel
-        return sfft.rfft2(np.roll(padded, (-h, -h), axis=(0, 1)))
+        return spectra.centred_fft(kernel, (self.n, self.n), real=True)
 
     def error(self, diff: np.ndarray) -> float:
         return float(np.sqrt(np.sum((diff.real**2 + diff.imag**2) * self.weights)))
@@ -262,7 +262,7 @@ def _layers(present, profile, cache: _KernelCache, tol):
 
 def _blur_px(lens: Lens, inv: float, p_mm: np.ndarray) -> np.ndarray:
     v = optics.image_distance(lens.focal_length_mm, _depth(inv))
-    return lens.aperture_mm * np.abs(v - p_mm) / v / lens.pixel_pitch_mm  # Eq. 2
+    return lens.blur_px(v, p_mm)
 
 
 def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
@@ -518,8 +518,7 @@ def plan(
 
 
 def _forced_steps(profile: Profile, p_ref: float, n: int):
-    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
-        raise InputError(f"magnification_steps must be an integer >= 0, got {n!r}")
+    validate.whole("magnification_steps", n, minimum=0)
     if n == 0:
         return (Step(profile, 1.0, 1.0),), 0.0, False, 1
     return _steps(profile, p_ref, n), 0.0, True, n

@@ -1,4 +1,6 @@
-"""pareto."""
+"""The accuracy benchmark's rows and metrics, the Pareto front of (time, error), and
+which defaults another setting dominates.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""report."""
+"""The accuracy benchmark's outputs: the CSV/Markdown table, the Pareto plot and the
+summary of what to act on.
+"""
 
 from __future__ import annotations
 

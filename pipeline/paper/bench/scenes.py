@@ -1,4 +1,6 @@
-"""scenes."""
+"""The accuracy benchmark's scenes with ground truth: the shipped motorcycle sample and
+generated scenes with depth edges, written as focal stacks.
+"""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""suites."""
+"""One function per group of knobs of the accuracy benchmark: IPSFs, simulation,
+alignment, deconvolution and frame sampling, each measured against ground truth.
+"""
 
 from __future__ import annotations
 
