@@ -79,7 +79,8 @@ def _umask() -> int:
 
 @contextlib.contextmanager
 def connect(backend=None, *, drive_size: int = 1, drive_pace_s: float | None = None,
-            clock=None, bulb: bool = False) -> Iterator[FocusCamera]:
+            clock=None, bulb: bool = False,
+            known_operations=()) -> Iterator[FocusCamera]:
     """Open the first camera, check it can do the flow, yield its driver, always clean up.
 
     Parameters
@@ -92,6 +93,8 @@ def connect(backend=None, *, drive_size: int = 1, drive_pace_s: float | None = N
         Default: the backend's ``clock`` attribute, else the system clock.
     bulb : bool
         The flow exposes in bulb while driving (a sweep): refuse bodies that cannot.
+    known_operations : iterable of int
+        Operations this body performs although GetDeviceInfo hides them (per-body table).
     """
     cameras, seen = find_cameras(backend)
     if not cameras:
@@ -99,12 +102,13 @@ def connect(backend=None, *, drive_size: int = 1, drive_pace_s: float | None = N
     if clock is None:
         clock = getattr(backend, "clock", SYSTEM_CLOCK)
     session = PtpSession(UsbTransport(cameras[0]), clock=clock)
+    session.extra_operations |= set(known_operations)
     try:
         session.open()
         camera = camera_for(session, drive_size=drive_size, drive_pace_s=drive_pace_s)
         camera.check_supported(bulb=bulb)
-        camera.start()
         try:
+            camera.start()  # a start that fails half way must be undone too
             yield camera
         finally:
             camera.safe_state()

@@ -162,6 +162,7 @@ class EmulatedCamera:
         self._next_handle = 0x1001
         self._folder_made = False
         self._events: list = []
+        self._delayed: list[tuple[float, bytes]] = []  # (due time, record)
         self._dumped = False
         self._motor_until = 0.0
         self._ready_until = 0.0
@@ -318,7 +319,7 @@ class EmulatedCamera:
             rc, out_params, data = f.error_on.pop(code), (), None
         else:
             rc, out_params, data = self._operate(code, args, data_out)
-        if rc == DEVICE_BUSY:
+        if rc in (DEVICE_BUSY, NIKON_BULB_BUSY):
             self.busy_given += 1
         if data is not None:
             self._queue(layouts.container(2, code, tid, data))
@@ -459,6 +460,9 @@ class EmulatedCamera:
         return OK, (), None
 
     def _canon_9116(self, *_, data=None):  # GetEvent
+        now = self.clock.now()
+        self._events += [r for due, r in self._delayed if due <= now]
+        self._delayed = [(due, r) for due, r in self._delayed if due > now]
         records, self._events = self._events, []
         return OK, (), b"".join(records) + layouts.EOS_TERMINATOR
 
@@ -508,17 +512,18 @@ class EmulatedCamera:
         handle = self._close_shutter(transfer=to_pc)
         obj = self.objects[handle]
         self._events.append(layouts.eos_camera_status(0))
+        due = self.clock.now() + self.p.image_delay_s
         if to_pc:
-            self._events.append(layouts.eos_request_transfer(handle, len(obj.blob), obj.name,
-                                                             obj.fmt))
+            self._delayed.append((due, layouts.eos_request_transfer(handle, len(obj.blob),
+                                                                    obj.name, obj.fmt)))
             return
         added = layouts.eos_object_added64 if self.p.object_event == "ex64" else \
             layouts.eos_object_added
         if not self._folder_made:  # the first image on the card opens a new folder
             self._folder_made = True
-            self._events.append(added(0x00100000, 0, "100CANON", FOLDER_FORMAT,
-                                      parent=0xFFFFFFFF))
-        self._events.append(added(handle, len(obj.blob), obj.name, obj.fmt))
+            self._delayed.append((due, added(0x00100000, 0, "100CANON", FOLDER_FORMAT,
+                                             parent=0xFFFFFFFF)))
+        self._delayed.append((due, added(handle, len(obj.blob), obj.name, obj.fmt)))
 
     def _canon_9107(self, handle=0, offset=0, length=0, *_, data=None):  # GetPartialObject
         return self._partial(handle, offset, length)

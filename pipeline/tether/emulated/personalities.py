@@ -43,6 +43,8 @@ class Personality:
         (answered OK, ignored).
     ready_busy_s : float
         Nikon DeviceReady stays busy this long after a capture (processing, NR).
+    image_delay_s : float
+        Canon: the new-image event comes this long after the shot (long-exposure NR).
     omit_zlp : bool
         The body does not send the zero-length packet after a container that ends
         on a packet boundary.
@@ -70,6 +72,7 @@ class Personality:
     drive_s: dict = field(default_factory=lambda: {1: 0.05, 2: 0.15, 3: 0.35})
     drive_overlap: str = "drop"
     ready_busy_s: float = 1.5
+    image_delay_s: float = 0.0  # Canon: the image is announced this long after the shot
     omit_zlp: bool = False
 
     @property
