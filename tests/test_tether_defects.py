@@ -190,6 +190,15 @@ def test_d7_drives_are_paced_polled_and_counted(tmp_path, overlap):
             assert ops[i + 1] == CanonOC.GetEvent  # an event poll after every drive
 
 
+def test_d7_capture_drains_unasked_events_first():
+    cam = EmulatedCamera(CANON.but(chatter_s=0.5))
+    with connect(EmulatedBackend(cam)) as camera:
+        for _ in range(3):
+            camera.clock.sleep(2.0)  # the body reports a property change meanwhile
+            camera.download(camera.capture())
+    assert len(cam.shots) == 3 and camera.session.retried == 0
+
+
 def test_d7_sweep_that_cannot_be_paced_is_refused(tmp_path):
     cam = EmulatedCamera(EOS_SWEEP, shutter="bulb")
     with pytest.raises(InputError, match="drive commands at least 100 ms apart"):

@@ -164,6 +164,7 @@ class EmulatedCamera:
         self._events: list = []
         self._delayed: list[tuple[float, bytes]] = []  # (due time, record)
         self._dumped = False
+        self._chatter_at = self.clock.now() + self.p.chatter_s
         self._motor_until = 0.0
         self._ready_until = 0.0
         self._ready_result = OK
@@ -343,6 +344,9 @@ class EmulatedCamera:
         if op == 0x1003:  # CloseSession
             self.session_open = False
             return OK, (), None
+        if self.p.chatter_s and self.event_mode and self.clock.now() >= self._chatter_at:
+            self._chatter_at = self.clock.now() + self.p.chatter_s
+            self._events.append(layouts.eos_prop_value(0xD1AB, 0))  # TempStatus: normal
         handler = getattr(self, f"_{self.p.vendor}_{op:04x}", None) or getattr(
             self, f"_std_{op:04x}", None)
         if handler is None:

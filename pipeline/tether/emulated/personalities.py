@@ -73,6 +73,7 @@ class Personality:
     drive_overlap: str = "drop"
     ready_busy_s: float = 1.5
     image_delay_s: float = 0.0  # Canon: the image is announced this long after the shot
+    chatter_s: float = 0.0  # Canon: a property event (TempStatus) this often, unasked
     omit_zlp: bool = False
 
     @property
