@@ -190,6 +190,21 @@ def test_d7_drives_are_paced_polled_and_counted(tmp_path, overlap):
             assert ops[i + 1] == CanonOC.GetEvent  # an event poll after every drive
 
 
+def test_d7_frame_not_recorded_when_the_lens_switch_went_to_mf(tmp_path):
+    cam = EmulatedCamera(CANON)
+
+    def flip(index, _name, _step):
+        if index == 1:
+            cam.set_lens_switch("MF")  # later drives are ignored by the body
+
+    with pytest.raises(LensAtManual), connect(EmulatedBackend(cam)) as camera:
+        capture_stack(camera, tmp_path, StackPlan(5, 10, settle_s=0.0), lens=LENS,
+                      on_frame=flip)
+    meta = tomllib.loads((tmp_path / "stack.toml").read_text())
+    assert meta["partial"] is True and [f["focus_step"] for f in meta["frames"]] == [0, 10]
+    assert len(cam.shots) == 2
+
+
 def test_d7_capture_drains_unasked_events_first():
     cam = EmulatedCamera(CANON.but(chatter_s=0.5))
     with connect(EmulatedBackend(cam)) as camera:

@@ -149,15 +149,18 @@ class CanonEOS(FocusCamera):
                       (CANON_REMOTE_MODE_EOS_M if self.eos_m else CANON_REMOTE_MODE,))
         s.transaction(CanonOC.SetEventMode, (1,))
         self.drain_events()
+        self._check_lens_switch()
+        if self.properties.get(CanonDPC.EVFMode) != 1:
+            self.set_property(CanonDPC.EVFMode, 1)
+        self.set_property(CanonDPC.EVFOutputDevice, CANON_EVF_PC)
+        self._poll("live view (EVFMode 1, EVF output to PC)", self._evf_on, timeout_s=10.0)
+
+    def _check_lens_switch(self) -> None:
         if self.properties.get(CanonDPC.FocusMode) == CANON_FOCUS_MODE_MF:
             raise LensAtManual(
                 "the lens focus switch is at MF (FocusMode 0xD108 = 3): the camera ignores "
                 "DriveLens there; set the switch to AF (frames are shot with the no-AF release)"
             )
-        if self.properties.get(CanonDPC.EVFMode) != 1:
-            self.set_property(CanonDPC.EVFMode, 1)
-        self.set_property(CanonDPC.EVFOutputDevice, CANON_EVF_PC)
-        self._poll("live view (EVFMode 1, EVF output to PC)", self._evf_on, timeout_s=10.0)
 
     def _evf_on(self):
         self.poll_events()
@@ -221,10 +224,12 @@ class CanonEOS(FocusCamera):
             self.poll_events()
 
     def settle(self, seconds: float) -> None:
-        """Wait for the motor (pace) and ``seconds``, then take in the camera's events."""
+        """Wait for the motor (pace) and ``seconds``, take in the camera's events, and check
+        the drives could have moved the lens (the switch was not turned to MF meanwhile)."""
         self.clock.sleep(self._last_drive + self.drive_pace_s - self.clock.now())
         self.clock.sleep(seconds)
         self.drain_events()
+        self._check_lens_switch()
 
     # --- capture ----------------------------------------------------------------------------
 

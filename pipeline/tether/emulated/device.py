@@ -266,6 +266,13 @@ class EmulatedCamera:
         if not self.plugged:
             raise usb.core.USBError("No such device (it may have been disconnected)", *_ENODEV)
 
+    def set_lens_switch(self, mode: str) -> None:
+        """The user moves the lens focus switch to ``"AF"`` or ``"MF"`` (Canon FocusMode event)."""
+        self.properties[EOS_FOCUS_MODE] = 3 if mode == "MF" else 0
+        if self.event_mode:
+            self._events.append(layouts.eos_prop_value(EOS_FOCUS_MODE,
+                                                       self.properties[EOS_FOCUS_MODE]))
+
     def unplug(self) -> None:
         """Pull the cable: every later transfer fails with ENODEV."""
         self.plugged = False
