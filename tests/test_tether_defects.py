@@ -332,3 +332,15 @@ def test_emulator_refuses_a_property_write_with_a_wrong_size():
             CanonOC.SetDevicePropValueEx, data_out=struct.pack("<III", 16, 0xD1B3, 1),
             check=False)
         assert response.code == 0x201D  # InvalidParameter: size field != data length
+
+
+def test_emulated_nikon_bulb_answers_bulb_release_busy_until_terminated():
+    cam = EmulatedCamera(NIKON)
+    with connect(EmulatedBackend(cam)) as camera:
+        cam.shutter = "bulb"  # mode dial turned after live view started
+        s = camera.session
+        s.transaction(NikonOC.InitiateCaptureRecInSdram, (0xFFFFFFFF,))
+        camera.clock.sleep(1.0)
+        assert s.transaction(NikonOC.DeviceReady, check=False, busy_ok=False).code == 0xA200
+        s.transaction(NikonOC.TerminateCapture, (0, 0))
+        assert camera.wait_ready() == 0x2001 and len(cam.shots) == 1

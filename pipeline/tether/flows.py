@@ -16,16 +16,19 @@ import tempfile
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipeline.errors import InputError, TetherError
-from pipeline.motion import Profile
 from pipeline.tether.base import DriveRefused, FocusCamera
 from pipeline.tether.clock import SYSTEM_CLOCK
 from pipeline.tether.dispatch import camera_for
 from pipeline.tether.session import CameraBusy, PtpSession
 from pipeline.tether.transport import DeviceGone, UsbTransport, find_cameras, no_camera_message
+
+if TYPE_CHECKING:
+    from pipeline.motion import Profile
 
 log = logging.getLogger(__name__)
 

@@ -569,6 +569,8 @@ class EmulatedCamera:
         return OK, (), None
 
     def _nikon_90c8(self, *_, data=None):  # DeviceReady
+        if self.exposing and self.shutter == "bulb":
+            return NIKON_BULB_BUSY, (), None  # bulb release busy until TerminateCapture
         if self._nikon_busy():
             return (self.faults.ready_busy_code if self._ready_after_capture else DEVICE_BUSY,
                     (), None)

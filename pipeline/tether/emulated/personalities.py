@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 
+from pipeline.errors import InputError
 from pipeline.tether.codes import OC, CanonOC, NikonOC
 
 _COMMON_OPS = (OC.GetDeviceInfo, OC.OpenSession, OC.CloseSession, OC.GetObjectInfo,
@@ -113,8 +114,6 @@ DEFAULT = {"canon": CANON, "nikon": NIKON}
 
 def personality(vendor: str, name: str | None = None) -> Personality:
     """The named personality (default: the vendor's DSLR); it must be of ``vendor``."""
-    from pipeline.errors import InputError
-
     if name is None:
         return DEFAULT[vendor]
     found = PERSONALITIES.get(name)
