@@ -105,14 +105,17 @@ def test_d2_sweep_closes_the_shutter_on_every_error(tmp_path, fault):
 # --- 3: Nikon live view is not restarted after a capture -------------------------------------
 
 
-@pytest.mark.parametrize("lists_status", [True, False])
-def test_d3_nikon_live_view_restarted_after_each_capture(tmp_path, lists_status):
-    personality = NIKON if lists_status else NIKON.but(
-        operations=tuple(op for op in NIKON.operations if op != OC.GetDevicePropValue))
+@pytest.mark.parametrize(("personality", "starts"), [
+    (NIKON, 4),  # at start, then after each capture but the last
+    (NIKON.but(operations=tuple(op for op in NIKON.operations if op != OC.GetDevicePropValue)),
+     4),  # no LiveViewStatus to ask: restart after every capture
+    (NIKON.but(drops_live_view=False), 1),  # a body that keeps live view: no restart
+])
+def test_d3_nikon_live_view_restarted_after_each_capture(tmp_path, personality, starts):
     cam = EmulatedCamera(personality)
     result = _stack(cam, tmp_path, StackPlan(4, 15, settle_s=0.0))
     assert len(result.frames) == 4 and _shots_match_focus_steps(cam, result)
-    assert len(_ops(cam, NikonOC.StartLiveView)) == 4  # at start, then after each capture
+    assert len(_ops(cam, NikonOC.StartLiveView)) == starts
     _assert_safe(cam)
 
 

@@ -133,9 +133,10 @@ class FocusCamera:
         self.open_exposure()
         try:
             self.clock.sleep(exposure_s)
-        finally:
-            obj = self.close_exposure()
-        return obj
+        except BaseException:  # Ctrl-C: close the shutter without waiting for the image
+            self.abort_exposure()
+            raise
+        return self.close_exposure()
 
     def open_exposure(self) -> None:
         """Open the shutter (camera set to bulb)."""
