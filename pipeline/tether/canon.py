@@ -133,6 +133,11 @@ class CanonEOS(FocusCamera):
             raise InputError(f"Canon DriveLens step size must be 1, 2 or 3, got {self.drive_size}")
         if self.drive_pace_s is None:
             self.drive_pace_s = DRIVE_PACE_S[self.drive_size]
+        elif self.drive_pace_s < DRIVE_PACE_S[self.drive_size]:
+            log.warning("DriveLens pace %.0f ms is below the default %.0f ms: bodies silently "
+                        "drop a drive that arrives while the motor still runs, so focus_step "
+                        "may not be where the lens is", self.drive_pace_s * 1e3,
+                        DRIVE_PACE_S[self.drive_size] * 1e3)
         self.session.busy_codes |= {CanonRC.ObjectNotReady, CanonRC.MemoryStatusNotReady}
         self.status = 0
         self.properties: dict[int, int] = {}
