@@ -262,15 +262,21 @@ def capture_sweep(camera: FocusCamera, out_dir: Path, schedule: list[tuple[float
             clock.sleep(start + exposure_s - clock.now())
         except (DriveRefused, CameraBusy) as err:
             refused = err
+        exposed_s = clock.now() - start
         obj = camera.close_exposure()
     finally:
         camera.abort_exposure()  # any other error or Ctrl-C: the shutter must not stay open
     write_atomic(out_dir / "drives.toml", "".join(
         f"[[drives]]\nt_s = {t:.6f}\nsteps = {s}\n\n" for t, s in log_rows))
     if refused is None:
+        if exposed_s > 1.05 * exposure_s:
+            log.warning("the drives ran late: the exposure lasted %.3g s instead of %.3g s",
+                        exposed_s, exposure_s)
         name = f"capture{Path(obj.filename).suffix.lower()}"
         write_atomic(out_dir / name, camera.download(obj))
-        write_atomic(out_dir / "stack.toml", _sweep_toml(lens, name, exposure_s, total))
+        # what the camera acknowledged and how long the shutter was really open
+        write_atomic(out_dir / "stack.toml", _sweep_toml(lens, name, round(exposed_s, 6),
+                                                          camera.position))
         return SweepResult(out_dir, False, log_rows)
     camera.download(obj)  # clear it from the camera; the exposure is not a sweep
     camera.drive(-camera.position)
