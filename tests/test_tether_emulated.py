@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import struct
 import tomllib
 from pathlib import Path
 
@@ -13,27 +14,24 @@ import usb.core
 from pipeline import cli
 from pipeline.errors import InputError, TetherError
 from pipeline.io.profiles import lens_to_toml, load_lens
-from pipeline.tether.camera import CapturedObject, EndStop
+from pipeline.tether.base import CapturedObject, EndStop
 from pipeline.tether.codes import OC, CanonOC, NikonOC
-from pipeline.tether.emulator import (
-    CANON,
-    NIKON,
+from pipeline.tether.emulated.device import (
     EmulatedBackend,
     EmulatedCamera,
     Faults,
     OtherDevice,
-    Personality,
+    StoredObject,
 )
+from pipeline.tether.emulated.personalities import CANON, EOS_SWEEP, NIKON
+from pipeline.tether.emulated.scene import UM_PER_STEP
 from pipeline.tether.flows import StackPlan, capture_stack, capture_sweep, connect
-from pipeline.tether.scene import UM_PER_STEP
 from pipeline.tether.session import UnsupportedCamera
 from pipeline.tether.transport import MAX_TRANSFER, DeviceGone, EndpointStalled, TransportTimeout
 
-NO_WAIT = {"sleep": lambda _s: None}
-
 
 def _stack(cam, out, plan, **kw):
-    with connect(EmulatedBackend(cam), **NO_WAIT, **kw) as camera:
+    with connect(EmulatedBackend(cam), **kw) as camera:
         return capture_stack(camera, out, plan, lens="sigma-30mm-f1.4-canon-eos-20d")
 
 
@@ -46,7 +44,7 @@ def test_pyusb_sees_the_emulator_as_a_still_image_device():
     dev = usb.core.find(backend=EmulatedBackend(EmulatedCamera(CANON)))
     intf = dev.get_active_configuration()[(0, 0)]
     assert (intf.bInterfaceClass, intf.bInterfaceSubClass, intf.bInterfaceProtocol) == (6, 1, 1)
-    assert usb.util.get_string(dev, dev.iProduct) == "Canon EOS (emulated)"
+    assert usb.util.get_string(dev, dev.iProduct) == "Canon EOS 60D (emulated)"
 
 
 @pytest.mark.parametrize(("personality", "frames", "step", "direction"),
@@ -72,8 +70,8 @@ def test_stack_steps_match_motor_log(tmp_path, personality, frames, step, direct
 def test_downloads_with_zlp_on_both_directions(tmp_path):
     cam = EmulatedCamera(CANON)
     payload = bytes(range(256)) * ((MAX_TRANSFER + 500) // 256 + 10)
-    cam.objects[99] = ("BIG.JPG", payload)
-    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+    cam.objects[99] = StoredObject("BIG.JPG", payload, 0x3801)
+    with connect(EmulatedBackend(cam)) as camera:
         # data container of MAX_TRANSFER + 512 bytes: a full first read, then one packet + ZLP
         obj = CapturedObject(99, len(payload), "BIG.JPG")
         assert camera.download(obj, chunk=MAX_TRANSFER + 500) == payload
@@ -81,13 +79,13 @@ def test_downloads_with_zlp_on_both_directions(tmp_path):
         # host-to-device data phase of exactly one packet (12 + 500 bytes) must end with a ZLP
         before = cam.zlps_received
         camera.session.transaction(CanonOC.SetDevicePropValueEx,
-                                   data_out=(12).to_bytes(4, "little") + bytes(496))
+                                   data_out=struct.pack("<III", 500, 0xD1B3, 0) + bytes(488))
         assert cam.zlps_received == before + 1
 
 
 def test_busy_responses_are_retried(tmp_path):
     cam = EmulatedCamera(CANON, faults=Faults(busy_responses=6))
-    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+    with connect(EmulatedBackend(cam)) as camera:
         capture_stack(camera, tmp_path, StackPlan(4, 3, settle_s=0.0), lens="l")
         assert camera.session.retried == 6
     assert cam.busy_given == 6 and len(cam.shots) == 4
@@ -115,7 +113,7 @@ def test_unplug_mid_stack_keeps_downloaded_frames(tmp_path):
 
 def test_timeout_cancels_and_session_stays_usable():
     cam = EmulatedCamera(CANON)
-    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+    with connect(EmulatedBackend(cam)) as camera:
         cam.faults.timeout_on = CanonOC.DriveLens
         with pytest.raises(TransportTimeout, match="cancelled"):
             camera.drive(1)
@@ -138,7 +136,7 @@ def test_keyboard_interrupt_restores_camera(tmp_path):
         if index == 2:
             raise KeyboardInterrupt
 
-    with pytest.raises(KeyboardInterrupt), connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+    with pytest.raises(KeyboardInterrupt), connect(EmulatedBackend(cam)) as camera:
         assert cam.evf_on and cam.remote_mode == 1
         capture_stack(camera, tmp_path, StackPlan(8, 2, settle_s=0.0), lens="l",
                       on_frame=interrupt)
@@ -147,27 +145,26 @@ def test_keyboard_interrupt_restores_camera(tmp_path):
     assert meta["partial"] is True and len(meta["frames"]) == 3
 
 
-@pytest.mark.parametrize("personality", [CANON, NIKON])
-def test_sweep_drives_during_bulb_when_allowed(tmp_path, personality):
-    cam = EmulatedCamera(personality, shutter="bulb",
-                         faults=Faults(refuse_drive_while_exposing=False))
-    schedule = [(0.02 * i, 5) for i in range(1, 6)]
-    with connect(EmulatedBackend(cam), bulb=True, **NO_WAIT) as camera:
-        result = capture_sweep(camera, tmp_path, schedule, 0.15, lens="l", fallback_step=5)
+def test_sweep_drives_during_bulb_when_allowed(tmp_path):
+    cam = EmulatedCamera(EOS_SWEEP, shutter="bulb")
+    schedule = [(0.5 * i, 5) for i in range(1, 6)]
+    with connect(EmulatedBackend(cam), bulb=True) as camera:
+        result = capture_sweep(camera, tmp_path, schedule, 3.0, lens="l", fallback_step=5)
     assert not result.fell_back and len(cam.shots) == 1
-    assert cam.shots[0][1] == 25 * personality.steps_per_size[1]
+    assert cam.shots[0][1] == 25 * EOS_SWEEP.steps_per_size[1]
     drives = tomllib.loads((tmp_path / "drives.toml").read_text())["drives"]
     times = [d["t_s"] for d in drives]
     assert [d["steps"] for d in drives] == [5] * 5
     assert times == sorted(times) and all(t >= s for t, (s, _n) in zip(times, schedule))
     meta = tomllib.loads((tmp_path / "stack.toml").read_text())
     assert meta["kind"] == "sweep" and (tmp_path / meta["sweep"]["file"]).is_file()
+    assert cam.dropped_drives == 0
     _assert_safe(cam)
 
 
 def test_sweep_falls_back_to_dense_stack_when_refused(tmp_path, capsys):
-    rc = cli.main(["tether", "sweep", "-o", str(tmp_path), "--steps", "40", "--exposure", "0.2",
-                   "--emulate", "nikon", "--fallback-step", "10"])
+    rc = cli.main(["tether", "sweep", "-o", str(tmp_path), "--steps", "40", "--exposure", "5",
+                   "--emulate", "canon", "--fallback-step", "10"])
     assert rc == 0
     assert "falling back to a dense focal stack of 5 frames" in capsys.readouterr().out
     meta = tomllib.loads((tmp_path / "stack.toml").read_text())
@@ -176,17 +173,16 @@ def test_sweep_falls_back_to_dense_stack_when_refused(tmp_path, capsys):
 
 def test_no_camera_lists_what_was_seen():
     with pytest.raises(TetherError, match=r"no PTP camera.*1d6b:0002 \(unknown vendor, class 9\)"):
-        with connect(EmulatedBackend(OtherDevice()), **NO_WAIT):
+        with connect(EmulatedBackend(OtherDevice())):
             pass
 
 
 def test_unsupported_camera_names_missing_operations():
     ops = tuple(op for op in CANON.operations if op != CanonOC.DriveLens)
-    cam = EmulatedCamera(Personality("canon", 0x04A9, 0x3000, "Canon Inc.", "Old EOS", 0xB, ops,
-                                     "jpeg"))
+    cam = EmulatedCamera(CANON.but(operations=ops, model="Old EOS"))
     with pytest.raises(UnsupportedCamera, match=r"Old EOS cannot capture a focal stack: it lacks "
                                                 r"DriveLens \(0x9155\)"):
-        with connect(EmulatedBackend(cam), **NO_WAIT):
+        with connect(EmulatedBackend(cam)):
             pass
     assert not cam.session_open
 
@@ -231,7 +227,7 @@ def test_emulated_stack_processes_to_edof(tmp_path: Path):
 
 def test_nikon_step_too_small_is_an_input_error():
     cam = EmulatedCamera(NIKON)
-    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+    with connect(EmulatedBackend(cam)) as camera:
         with pytest.raises(InputError, match="too small"):
             camera._drive(0)  # amount 0: MfDriveStepInsufficiency from DeviceReady
     assert NikonOC.MfDrive in {op for _t, op, _p in cam.transactions}
@@ -239,7 +235,7 @@ def test_nikon_step_too_small_is_an_input_error():
 
 def test_device_reset_closes_the_session_and_it_can_reopen():
     cam = EmulatedCamera(NIKON)
-    with connect(EmulatedBackend(cam), **NO_WAIT) as camera:
+    with connect(EmulatedBackend(cam)) as camera:
         transport = camera.session.transport
         assert transport.device_status() == (0x2001, ())  # Get Device Status 0x67: OK
         transport.reset()  # Device Reset 0x66
@@ -253,12 +249,12 @@ def test_device_reset_closes_the_session_and_it_can_reopen():
 
 def test_tethered_sweep_processes_with_a_calibrated_lens(tmp_path, capsys):
     """A sweep capture's stack.toml (focus steps) deconvolves once the lens is calibrated."""
-    cam = EmulatedCamera(CANON, shutter="bulb", faults=Faults(refuse_drive_while_exposing=False))
-    schedule = [(0.02 * i, 5) for i in range(1, 6)]
+    cam = EmulatedCamera(EOS_SWEEP, shutter="bulb")
+    schedule = [(0.5 * i, 5) for i in range(1, 6)]
     shots = tmp_path / "sweep"
     shots.mkdir()
-    with connect(EmulatedBackend(cam), bulb=True, **NO_WAIT) as camera:
-        capture_sweep(camera, shots, schedule, 0.15, lens="sigma-30mm-f1.4-canon-eos-20d",
+    with connect(EmulatedBackend(cam), bulb=True) as camera:
+        capture_sweep(camera, shots, schedule, 3.0, lens="sigma-30mm-f1.4-canon-eos-20d",
                       fallback_step=5)
     out = tmp_path / "edof.tif"
     # the shipped profile has no step calibration: a clear error, nothing written

@@ -10,8 +10,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from pipeline.core.motion import Profile
-from pipeline.tether import canon, nikon
-from pipeline.tether.codes import CanonEC, ContainerType, NikonEC, response_name
+from pipeline.tether.codes import ContainerType, response_name
 from pipeline.tether.flows import drive_schedule, stack_toml_text
 from pipeline.tether.ptp import (
     Container,
@@ -88,21 +87,6 @@ def test_device_info_round_trip(model, ops, ext):
 def test_object_info_round_trip():
     info = ObjectInfo(123456, "DSC_0001.TIF", 0x380D, 0x10001, 320, 224)
     assert ObjectInfo.from_bytes(info.to_bytes()) == info
-
-
-def test_canon_event_records():
-    data = (canon.encode_event(CanonEC.PropValueChanged, (0xD1B0, 2))
-            + canon.object_added_record(7, 4096, "IMG_0007.JPG") + canon.EVENT_TERMINATOR)
-    events = canon.parse_events(data)
-    assert [e.type for e in events] == [CanonEC.PropValueChanged, CanonEC.ObjectAddedEx]
-    assert events[0].words == (0xD1B0, 2)
-    assert struct.unpack_from("<I", events[1].raw, 0x1C)[0] == 4096 == events[1].words[5]
-    assert events[1].filename == "IMG_0007.JPG"
-
-
-def test_nikon_events_round_trip():
-    events = [(NikonEC.ObjectAddedInSDRAM, 0xFFFF0001), (0x4006, 0x5007)]
-    assert nikon.parse_events(nikon.encode_events(events)) == events
 
 
 def test_vendor_codes_are_resolved_per_vendor():

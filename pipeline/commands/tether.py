@@ -18,8 +18,12 @@ def register(subparsers) -> None:
     sub.required = True
 
     def common(p):
-        p.add_argument("--emulate", choices=("canon", "nikon"),
-                       help="use the built-in emulated camera instead of USB")
+        p.add_argument("--emulate", choices=("canon", "nikon", "none"),
+                       help="use the built-in emulated camera instead of USB (none: a bus "
+                            "without a camera)")
+        p.add_argument("--personality", metavar="NAME",
+                       help="emulated body: eos-dslr (default canon), eos-r, eos-m, eos-sweep "
+                            "(drives while exposing), nikon-dslr (default nikon)")
 
     p = sub.add_parser("list", help="list cameras and what they support")
     common(p)
@@ -34,7 +38,11 @@ def register(subparsers) -> None:
     p.add_argument("--settle-ms", type=float, default=200.0, help="wait after each drive")
     p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3),
                    help="Canon DriveLens step size (1 fine .. 3 coarse)")
-    p.add_argument("--lens", help="lens profile name or path written to stack.toml")
+    p.add_argument("--drive-pace-ms", type=float,
+                   help="least time between focus-drive commands (Canon default 100/200/400 "
+                        "ms for size 1/2/3)")
+    p.add_argument("--lens", help="lens profile name or path written to stack.toml "
+                                  "(required for a real camera)")
     p.set_defaults(func=_stack)
 
     p = sub.add_parser("sweep", help="one bulb exposure while driving the focus (Sec. 8)")
@@ -47,7 +55,8 @@ def register(subparsers) -> None:
     p.add_argument("--fallback-step", type=int, default=10,
                    help="frame spacing of the dense stack used if the camera refuses")
     p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3))
-    p.add_argument("--lens", help="lens profile name or path")
+    p.add_argument("--drive-pace-ms", type=float, help="least time between drive commands")
+    p.add_argument("--lens", help="lens profile name or path (required for a real camera)")
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("calibrate", help="measure step -> image distance from a captured stack")
@@ -61,30 +70,54 @@ def register(subparsers) -> None:
 
 def _backend(args, *, bulb: bool = False):
     if not args.emulate:
+        if args.personality:
+            raise InputError("--personality needs --emulate")
         return None
-    from pipeline.tether.emulator import emulated_backend
+    from pipeline.tether.emulated.device import emulated_backend
 
-    return emulated_backend(args.emulate, shutter="bulb" if bulb else "normal")
+    if args.emulate == "none":
+        return emulated_backend(None)
+    return emulated_backend(args.emulate, args.personality, shutter="bulb" if bulb else "normal")
 
 
-def _lens_name(args) -> str:
-    from pipeline.io.profiles import resolve_lens_path
-    from pipeline.tether.flows import DEFAULT_LENS
+def _pace(args) -> float | None:
+    if args.drive_pace_ms is None:
+        return None
+    if not (math.isfinite(args.drive_pace_ms) and args.drive_pace_ms >= 0):
+        raise InputError(f"--drive-pace-ms must be >= 0, got {args.drive_pace_ms}")
+    return args.drive_pace_ms / 1e3
 
-    name = args.lens or DEFAULT_LENS
-    resolve_lens_path(name)  # fail early on an unknown profile
-    return name
+
+def _lens(args):
+    """(name for stack.toml, profile): --lens, or the emulated body's lens (``lens.toml``)."""
+    from pipeline.io.profiles import lens_to_toml, load_lens
+
+    if args.lens:
+        return args.lens, load_lens(args.lens)  # fails early on an unknown profile
+    if args.emulate in ("canon", "nikon"):
+        from pipeline.tether.emulated.scene import LENS
+        from pipeline.tether.flows import write_atomic
+
+        args.output.mkdir(parents=True, exist_ok=True)
+        write_atomic(args.output / "lens.toml", lens_to_toml(LENS))
+        return "lens.toml", LENS
+    raise InputError("--lens is required with a real camera: give the lens profile (a name "
+                     "from lens_profiles/ or a path) that stack.toml should name")
 
 
 def _list(args) -> int:
-    from pipeline.tether.camera import camera_for
+    from pipeline.tether.clock import SYSTEM_CLOCK
+    from pipeline.tether.dispatch import camera_for
     from pipeline.tether.session import PtpSession, UnsupportedCamera
-    from pipeline.tether.transport import UsbTransport, find_cameras
+    from pipeline.tether.transport import UsbTransport, find_cameras, no_camera_message
 
-    cameras, seen = find_cameras(_backend(args))
+    backend = _backend(args)
+    cameras, seen = find_cameras(backend)
     print(f"USB devices: {len(seen)}; PTP cameras: {len(cameras)}")
+    if not cameras:
+        print(no_camera_message(seen))
     for device in cameras:
-        session = PtpSession(UsbTransport(device))
+        session = PtpSession(UsbTransport(device), clock=getattr(backend, "clock", SYSTEM_CLOCK))
         try:
             info = session.open()
             try:
@@ -104,8 +137,8 @@ def _stack(args) -> int:
     from pipeline.tether.flows import StackPlan, capture_stack, connect
 
     plan = StackPlan(args.frames, args.step, args.direction, args.settle_ms / 1e3)
-    lens = _lens_name(args)
-    with connect(_backend(args), drive_size=args.drive_size) as camera:
+    lens, _profile = _lens(args)
+    with connect(_backend(args), drive_size=args.drive_size, drive_pace_s=_pace(args)) as camera:
         result = capture_stack(camera, args.output, plan, lens=lens)
     print(f"{len(result.frames)} frames and stack.toml written to {args.output}")
     return 0
@@ -113,7 +146,6 @@ def _stack(args) -> int:
 
 def _sweep(args) -> int:
     from pipeline.core.motion import constant_speed
-    from pipeline.io.profiles import load_lens
     from pipeline.tether.flows import capture_sweep, connect, drive_schedule
 
     if args.steps < 1 or not (math.isfinite(args.exposure) and args.exposure > 0):
@@ -121,8 +153,7 @@ def _sweep(args) -> int:
                          f"{args.exposure}")
     if args.fallback_step < 1 or args.period_ms <= 0:
         raise InputError("--fallback-step must be >= 1 and --period-ms > 0")
-    lens_name = _lens_name(args)
-    lens = load_lens(lens_name)
+    lens_name, lens = _lens(args)
     step_um = lens.step_image_distance_um
     if step_um is None:
         log.info("%s has no calibrated step size; planning in steps (1 um per step)", lens_name)
@@ -132,7 +163,8 @@ def _sweep(args) -> int:
     profile = constant_speed(lens.focal_length_mm + travel_mm, sign * travel_mm / args.exposure,
                              args.exposure)
     schedule = drive_schedule(profile, step_um * 1e-3, period_s=args.period_ms / 1e3)
-    with connect(_backend(args, bulb=True), drive_size=args.drive_size, bulb=True) as camera:
+    with connect(_backend(args, bulb=True), drive_size=args.drive_size,
+                 drive_pace_s=_pace(args), bulb=True) as camera:
         result = capture_sweep(camera, args.output, schedule, args.exposure, lens=lens_name,
                                fallback_step=args.fallback_step)
     if result.fell_back:

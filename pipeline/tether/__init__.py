@@ -2,7 +2,10 @@
 
 Modules: ``codes`` (protocol numbers), ``ptp`` (container and dataset codec),
 ``transport`` (pyusb I/O, class requests), ``session`` (transactions, retries),
-``camera``/``canon``/``nikon`` (vendor drivers), ``flows`` (stack and sweep
-capture), ``calibrate`` (step size from magnification), ``scene`` and
-``emulator`` (an emulated camera as a pyusb backend).
+``clock`` (system or virtual time), ``base`` (the driver interface and its
+errors), ``canon``/``nikon`` (vendor drivers), ``dispatch`` (driver for a
+session), ``flows`` (stack and sweep capture), ``calibrate`` (step size from
+magnification), ``emulated`` (an emulated camera as a pyusb backend, its
+personalities, byte layouts and scene). ``camera`` and ``emulator`` only
+re-export names for older imports.
 """

@@ -71,11 +71,13 @@ class NikonOC(IntEnum):
     """Nikon operation codes (PTP_OC_NIKON_*)."""
 
     InitiateCaptureRecInSdram = 0x90C0
+    ChangeCameraMode = 0x90C2
     GetEvent = 0x90C7  # "CheckEvent" in older headers
     DeviceReady = 0x90C8
     StartLiveView = 0x9201
     EndLiveView = 0x9202
     MfDrive = 0x9204
+    InitiateCaptureRecInMedia = 0x9207
     TerminateCapture = 0x920C
 
 
@@ -118,6 +120,7 @@ class NikonRC(IntEnum):
     NotLiveView = 0xA00B
     MfDriveStepEnd = 0xA00C
     MfDriveStepInsufficiency = 0xA00E
+    BulbReleaseBusy = 0xA200
 
 
 class EC(IntEnum):
@@ -136,7 +139,9 @@ class CanonEC(IntEnum):
     ObjectAddedEx = 0xC181
     RequestObjectTransfer = 0xC186
     PropValueChanged = 0xC189
+    AvailListChanged = 0xC18A
     CameraStatusChanged = 0xC18B
+    ObjectAddedEx64 = 0xC1A7
 
 
 class NikonEC(IntEnum):
@@ -149,7 +154,23 @@ class NikonEC(IntEnum):
 class CanonDPC(IntEnum):
     """Canon EOS device properties (PTP_DPC_CANON_EOS_*)."""
 
+    FocusMode = 0xD108
+    CaptureDestination = 0xD11C
     EVFOutputDevice = 0xD1B0
+    EVFMode = 0xD1B1
+
+
+class NikonDPC(IntEnum):
+    """Nikon device properties (PTP_DPC_NIKON_*)."""
+
+    LiveViewStatus = 0xD1A2
+    LiveViewProhibitCondition = 0xD1A4
+
+
+OBJECT_FORMAT_ASSOCIATION = 0x3001  # a folder (ISO 15740 ObjectFormatCode)
+CANON_FOCUS_MODE_MF = 3  # FocusMode (0xD108) with the lens switch at MF
+CANON_DEST_CARD, CANON_DEST_PC = 2, 4  # CaptureDestination (0xD11C): card, PC (SDRAM)
+CANON_REMOTE_MODE, CANON_REMOTE_MODE_EOS_M = 1, 0x15  # SetRemoteMode parameter
 
 
 CANON_EVF_OFF, CANON_EVF_TFT, CANON_EVF_PC = 0, 1, 2  # EVFOutputDevice values

@@ -1,8 +1,9 @@
 """Capture flows: focal stack (drive, shoot, download) and focus-sweep (bulb + drive).
 
-The camera is put back in a safe state (live view off, remote mode off) and the
-session closed on every exit path, KeyboardInterrupt included. Frames already
-downloaded stay on disk; a stack that ends early gets ``partial = true``.
+The camera is put back in a safe state (shutter closed, live view off, remote
+mode off) and the session closed on every exit path, KeyboardInterrupt
+included. Frames already downloaded stay on disk; a stack that ends early gets
+``partial = true``. Every wait goes through the camera's clock.
 """
 
 from __future__ import annotations
@@ -12,22 +13,25 @@ import logging
 import math
 import os
 import tempfile
-import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipeline.core.motion import Profile
 from pipeline.errors import InputError, TetherError
-from pipeline.tether.camera import DriveRefused, FocusCamera, camera_for
+from pipeline.tether.base import DriveRefused, FocusCamera
+from pipeline.tether.clock import SYSTEM_CLOCK
+from pipeline.tether.dispatch import camera_for
 from pipeline.tether.session import CameraBusy, PtpSession
-from pipeline.tether.transport import DeviceGone, UsbTransport, find_cameras
+from pipeline.tether.transport import DeviceGone, UsbTransport, find_cameras, no_camera_message
+
+if TYPE_CHECKING:
+    from pipeline.core.motion import Profile
 
 log = logging.getLogger(__name__)
 
-DEFAULT_LENS = "sigma-30mm-f1.4-canon-eos-20d"
 DIRECTIONS = {"near": -1, "far": 1}
 
 
@@ -50,39 +54,64 @@ def _quote(text: str) -> str:
 
 
 def write_atomic(path: Path, data: bytes | str) -> None:
-    """Write via a temporary file in the same directory and ``os.replace``."""
+    """Write via a temporary file in the same directory and ``os.replace``.
+
+    The file gets the mode a plain ``open()`` would give (0666 less the umask),
+    not the 0600 of :func:`tempfile.mkstemp`.
+    """
     blob = data.encode("utf-8") if isinstance(data, str) else data
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(blob)
+            os.fchmod(fh.fileno(), 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
 
 
+def _umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
 # --- connecting -------------------------------------------------------------------------------
 
 
 @contextlib.contextmanager
-def connect(backend=None, *, drive_size: int = 1, sleep=time.sleep,
-            bulb: bool = False) -> Iterator[FocusCamera]:
-    """Open the first camera, check it can do the flow, yield its driver, always clean up."""
+def connect(backend=None, *, drive_size: int = 1, drive_pace_s: float | None = None,
+            clock=None, bulb: bool = False,
+            known_operations=()) -> Iterator[FocusCamera]:
+    """Open the first camera, check it can do the flow, yield its driver, always clean up.
+
+    Parameters
+    ----------
+    backend : usb.backend.IBackend, optional
+        Default: libusb. An emulated backend brings its own (virtual) clock.
+    drive_size, drive_pace_s
+        Passed to the driver.
+    clock : optional
+        Default: the backend's ``clock`` attribute, else the system clock.
+    bulb : bool
+        The flow exposes in bulb while driving (a sweep): refuse bodies that cannot.
+    known_operations : iterable of int
+        Operations this body performs although GetDeviceInfo hides them (per-body table).
+    """
     cameras, seen = find_cameras(backend)
     if not cameras:
-        listing = "; ".join(seen) if seen else "no USB devices at all"
-        raise TetherError(
-            f"no PTP camera (USB Still Image class 6/1/1) found; seen: {listing}. "
-            "Switch the camera on, set its USB mode to PTP, and check permissions (udev)"
-        )
-    session = PtpSession(UsbTransport(cameras[0]), sleep=sleep)
+        raise TetherError(no_camera_message(seen))
+    if clock is None:
+        clock = getattr(backend, "clock", SYSTEM_CLOCK)
+    session = PtpSession(UsbTransport(cameras[0]), clock=clock)
+    session.extra_operations |= set(known_operations)
     try:
         session.open()
-        camera = camera_for(session, drive_size=drive_size)
+        camera = camera_for(session, drive_size=drive_size, drive_pace_s=drive_pace_s)
         camera.check_supported(bulb=bulb)
-        camera.start()
         try:
+            camera.start()  # a start that fails half way must be undone too
             yield camera
         finally:
             camera.safe_state()
@@ -144,7 +173,7 @@ def capture_stack(camera: FocusCamera, out_dir: Path, plan: StackPlan, *, lens: 
         for index in range(plan.frames):
             if index:
                 camera.drive(sign * plan.step)
-                time.sleep(plan.settle_s)
+                camera.settle(plan.settle_s)
             obj = camera.capture() if plan.bulb_s is None else camera.capture_bulb(plan.bulb_s)
             data = camera.download(obj)
             name = f"frame_{index:03d}{Path(obj.filename).suffix.lower()}"
@@ -209,28 +238,45 @@ def capture_sweep(camera: FocusCamera, out_dir: Path, schedule: list[tuple[float
     focal stack over the same range (``fallback_step`` apart, each frame exposed
     ``exposure_s`` in bulb) is captured instead.
     """
-    out_dir.mkdir(parents=True, exist_ok=True)
     total = sum(steps for _t, steps in schedule)
-    camera.open_exposure()
-    start = time.monotonic()
+    commands = sum(camera.drive_commands(steps) for _t, steps in schedule)
+    if commands * camera.drive_pace_s > exposure_s:
+        raise InputError(
+            f"the sweep needs {commands} drive commands at least {camera.drive_pace_s * 1e3:.0f} "
+            f"ms apart ({commands * camera.drive_pace_s:.1f} s) but the exposure is "
+            f"{exposure_s} s; use a longer --exposure, fewer --steps or a larger --drive-size"
+        )
+    out_dir.mkdir(parents=True, exist_ok=True)
+    clock = camera.clock
     log_rows: list[tuple[float, int]] = []
     refused: TetherError | None = None
+    camera.open_exposure()
+    start = clock.now()
     try:
-        for at_s, steps in schedule:
-            time.sleep(max(0.0, start + at_s - time.monotonic()))
-            issued = time.monotonic() - start
-            camera.drive(steps)
-            log_rows.append((issued, steps))
-        time.sleep(max(0.0, start + exposure_s - time.monotonic()))
-    except (DriveRefused, CameraBusy) as err:
-        refused = err
-    obj = camera.close_exposure()
+        try:
+            for at_s, steps in schedule:
+                clock.sleep(start + at_s - clock.now())
+                issued = clock.now() - start
+                camera.drive(steps)
+                log_rows.append((issued, steps))
+            clock.sleep(start + exposure_s - clock.now())
+        except (DriveRefused, CameraBusy) as err:
+            refused = err
+        exposed_s = clock.now() - start
+        obj = camera.close_exposure()
+    finally:
+        camera.abort_exposure()  # any other error or Ctrl-C: the shutter must not stay open
     write_atomic(out_dir / "drives.toml", "".join(
         f"[[drives]]\nt_s = {t:.6f}\nsteps = {s}\n\n" for t, s in log_rows))
     if refused is None:
+        if exposed_s > 1.05 * exposure_s:
+            log.warning("the drives ran late: the exposure lasted %.3g s instead of %.3g s",
+                        exposed_s, exposure_s)
         name = f"capture{Path(obj.filename).suffix.lower()}"
         write_atomic(out_dir / name, camera.download(obj))
-        write_atomic(out_dir / "stack.toml", _sweep_toml(lens, name, exposure_s, total))
+        # what the camera acknowledged and how long the shutter was really open
+        write_atomic(out_dir / "stack.toml", _sweep_toml(lens, name, round(exposed_s, 6),
+                                                          camera.position))
         return SweepResult(out_dir, False, log_rows)
     camera.download(obj)  # clear it from the camera; the exposure is not a sweep
     camera.drive(-camera.position)

@@ -1,11 +1,18 @@
-"""Nikon: live view, MfDrive with DeviceReady polling, capture into SDRAM, download.
+"""Nikon: live view, MfDrive with DeviceReady polling, capture into SDRAM, download, delete.
 
-As in libgphoto2's ``camlibs/ptp2/config.c`` (``mfdrive``) and ``library.c``:
+As libgphoto2 documents it (``camlibs/ptp2/config.c`` ``mfdrive``, ``library.c``):
 StartLiveView then DeviceReady until not busy; MfDrive(direction 1 near /
 2 far, amount) then DeviceReady, whose MfDriveStepEnd (0xA00C) marks the end
 stop and MfDriveStepInsufficiency (0xA00E) a step too small to move;
-InitiateCaptureRecInSdram(0xFFFFFFFF = no AF), GetEvent for ObjectAddedInSDRAM,
-GetObjectInfo and GetPartialObject.
+InitiateCaptureRecInSdram(0xFFFFFFFF = no AF), DeviceReady (busy, 0x2019 or
+0xA200, for as long as the body processes: seconds after a long exposure),
+GetEvent for ObjectAddedInSDRAM, GetObjectInfo, GetPartialObject, then
+DeleteObject (an image left in SDRAM blocks live view and the next capture).
+
+Bodies end live view when they shoot; it is restarted before the next drive
+(LiveViewStatus 0xD1A2 when the body reports it). Live view is prohibited in
+bulb, and MfDrive needs live view, so a focus sweep (bulb while driving) is
+refused on Nikon bodies.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ from __future__ import annotations
 import struct
 
 from pipeline.errors import InputError
-from pipeline.tether.camera import CapturedObject, DriveRefused, EndStop, FocusCamera
+from pipeline.tether.base import CapturedObject, DriveRefused, EndStop, FocusCamera
 from pipeline.tether.codes import (
     NIKON_MFDRIVE_FAR,
     NIKON_MFDRIVE_NEAR,
@@ -21,13 +28,18 @@ from pipeline.tether.codes import (
     NIKON_SDRAM_HANDLE,
     OC,
     RC,
+    NikonDPC,
     NikonEC,
     NikonOC,
     NikonRC,
 )
 from pipeline.tether.ptp import ObjectInfo, ProtocolError
+from pipeline.tether.session import CameraBusy, UnsupportedCamera
 
 MAX_MFDRIVE = 32767
+READY_BUSY = (RC.DeviceBusy, NikonRC.BulbReleaseBusy)
+READY_POLL_S = 0.05
+READY_TIMEOUT_S = 60.0  # after a capture: exposure, noise reduction, writing
 
 
 def parse_events(data: bytes) -> list[tuple[int, int]]:
@@ -40,45 +52,91 @@ def parse_events(data: bytes) -> list[tuple[int, int]]:
     return [struct.unpack_from("<HI", data, 2 + 6 * i) for i in range(count)]
 
 
-def encode_events(events: list[tuple[int, int]]) -> bytes:
-    """Inverse of :func:`parse_events` (for the emulator)."""
-    return struct.pack("<H", len(events)) + b"".join(struct.pack("<HI", *e) for e in events)
-
-
 class Nikon(FocusCamera):
     vendor = "nikon"
     stack_ops = (
         NikonOC.StartLiveView, NikonOC.EndLiveView, NikonOC.MfDrive, NikonOC.DeviceReady,
         NikonOC.InitiateCaptureRecInSdram, NikonOC.GetEvent, OC.GetObjectInfo,
-        OC.GetPartialObject,
+        OC.GetPartialObject, OC.DeleteObject,
     )
-    bulb_ops = (*stack_ops, NikonOC.TerminateCapture)
     refusal_codes = (NikonRC.NotLiveView,)
 
-    def __post_init__(self) -> None:
+    def setup(self) -> None:
         if self.drive_size != 1:
             raise InputError(f"Nikon MfDrive has no step sizes: --drive-size must be 1, "
                              f"got {self.drive_size}")
+        if self.drive_pace_s is None:
+            self.drive_pace_s = 0.0  # DeviceReady already waits for the motor
         self.live_view = False
+        self._lv_stale = False  # a capture may have ended live view
+
+    def check_supported(self, *, bulb: bool = False) -> None:
+        super().check_supported()
+        if bulb:
+            model = self.session.device_info.model if self.session.device_info else "Nikon"
+            raise UnsupportedCamera(
+                f"{model} cannot drive the focus in bulb: Nikon bodies prohibit live view in "
+                "bulb and MfDrive needs live view; capture a focal stack (tether stack) instead"
+            )
 
     def start(self) -> None:
-        self.session.transaction(NikonOC.StartLiveView)
-        self.live_view = True
-        self.wait_ready()
+        self.start_live_view()
 
-    def wait_ready(self) -> int:
-        """Poll DeviceReady while it answers DeviceBusy; return its final code."""
-        response = self.session.transaction(NikonOC.DeviceReady, check=False)
-        if response.code not in (RC.OK, NikonRC.MfDriveStepEnd, NikonRC.MfDriveStepInsufficiency):
+    def open_exposure(self) -> None:
+        raise UnsupportedCamera("Nikon bodies cannot drive the focus in bulb (live view is "
+                                "prohibited there); capture a focal stack (tether stack) instead")
+
+    def start_live_view(self) -> None:
+        """StartLiveView, then DeviceReady until it is up."""
+        response = self.session.transaction(NikonOC.StartLiveView, check=False)
+        if response.code != RC.OK:
+            self.session.check(NikonOC.StartLiveView, response)
+        self.wait_ready(timeout_s=10.0)
+        self.live_view = True
+        self._lv_stale = False
+
+    def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> int:
+        """Poll DeviceReady while busy (0x2019, 0xA200 bulb release busy); its final code."""
+        deadline = self.clock.now() + timeout_s
+        while True:
+            response = self.session.transaction(NikonOC.DeviceReady, check=False, busy_ok=False)
+            if response.code not in READY_BUSY:
+                break
+            if self.clock.now() > deadline:
+                raise CameraBusy(f"camera still busy after {timeout_s:.0f} s (DeviceReady "
+                                 f"0x{response.code:04X}); check the camera", response.code)
+            self.clock.sleep(READY_POLL_S)
+        if response.code not in (RC.OK, NikonRC.MfDriveStepEnd,
+                                 NikonRC.MfDriveStepInsufficiency):
             self.session.check(NikonOC.DeviceReady, response)
         return response.code
+
+    def _live_view_on(self) -> bool:
+        """LiveViewStatus if the body reports it; otherwise assume a capture ended it."""
+        if self.session.supports(OC.GetDevicePropValue):
+            response = self.session.transaction(OC.GetDevicePropValue,
+                                                (NikonDPC.LiveViewStatus,), want_data=True,
+                                                check=False)
+            if response.code == RC.OK and response.data:
+                return bool(response.data[0])
+        return False
+
+    def _ensure_live_view(self) -> None:
+        if self._lv_stale and not self._live_view_on():
+            self.start_live_view()
+        self._lv_stale = False
 
     def _drive(self, steps: int) -> None:
         direction = NIKON_MFDRIVE_FAR if steps > 0 else NIKON_MFDRIVE_NEAR
         amount = abs(steps)
         if amount > MAX_MFDRIVE:
             raise InputError(f"Nikon MfDrive moves at most {MAX_MFDRIVE} steps, got {amount}")
+        self._ensure_live_view()
         response = self.session.transaction(NikonOC.MfDrive, (direction, amount), check=False)
+        if response.code == NikonRC.NotLiveView and not self.exposing:
+            self.start_live_view()  # the body ended it (e.g. after a capture): once more
+            response = self.session.transaction(NikonOC.MfDrive, (direction, amount),
+                                                check=False)
         code = response.code
         if code == RC.OK:
             code = self.wait_ready()
@@ -95,30 +153,22 @@ class Nikon(FocusCamera):
                 "(Nikon MfDriveStepInsufficiency 0xA00E); use a larger --step"
             )
         if code in self.refusal_codes:
-            raise DriveRefused("MfDrive refused: live view is off (camera exposing?)", code)
+            raise DriveRefused("MfDrive refused: live view is off and could not be restarted",
+                               code)
         if code != RC.OK:
             self.session.check(NikonOC.MfDrive, response)
+        self.position += steps
 
     def capture(self) -> CapturedObject:
-        self.open_exposure()
-        return self._fetch_captured()
-
-    def open_exposure(self) -> None:
         self.session.transaction(NikonOC.InitiateCaptureRecInSdram, (NIKON_NO_AF,))
-
-    def close_exposure(self) -> CapturedObject:
-        """End a bulb exposure (TerminateCapture) and fetch the image's handle and size."""
-        self.session.transaction(NikonOC.TerminateCapture, (0, 0))
-        return self._fetch_captured()
-
-    def _fetch_captured(self) -> CapturedObject:
+        self._lv_stale = True
         self.wait_ready()
         handle = self._poll("waiting for the captured image (ObjectAddedInSDRAM)",
                             self._added_handle)
         info = ObjectInfo.from_bytes(
             self.session.transaction(OC.GetObjectInfo, (handle,), want_data=True).data
         )
-        return CapturedObject(handle, info.size, info.filename)
+        return CapturedObject(handle, info.size, info.filename, transfer=True)
 
     def _added_handle(self) -> int | None:
         data = self.session.transaction(NikonOC.GetEvent, want_data=True).data
@@ -132,8 +182,10 @@ class Nikon(FocusCamera):
             OC.GetPartialObject, (obj.handle, offset, length), want_data=True
         ).data
 
+    def _download_done(self, obj: CapturedObject) -> None:
+        self.session.transaction(OC.DeleteObject, (obj.handle,))
+
     def safe_state(self) -> None:
         if self.live_view:
             self._quietly("end live view", self.session.transaction, NikonOC.EndLiveView)
             self.live_view = False
-

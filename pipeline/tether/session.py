@@ -10,11 +10,10 @@ reports it is idle again, so the session stays usable.
 from __future__ import annotations
 
 import logging
-import time
-from collections.abc import Callable
 from dataclasses import dataclass
 
 from pipeline.errors import TetherError
+from pipeline.tether.clock import SYSTEM_CLOCK
 from pipeline.tether.codes import (
     OC,
     PTP_VENDOR_EXTENSION_IDS,
@@ -65,8 +64,8 @@ class PtpSession:
         How often a busy / not-ready response is retried.
     backoff_s, max_backoff_s : float
         First wait between retries (doubled each time, capped).
-    sleep : callable
-        ``time.sleep``; replaceable so that tests run without waiting.
+    clock : SystemClock or VirtualClock
+        Times every wait (an emulated camera shares a virtual one with the host).
     """
 
     def __init__(
@@ -76,18 +75,21 @@ class PtpSession:
         retries: int = 8,
         backoff_s: float = 0.05,
         max_backoff_s: float = 1.0,
-        sleep: Callable[[float], None] = time.sleep,
+        clock=SYSTEM_CLOCK,
     ) -> None:
         self.transport = transport
         self.retries = retries
         self.backoff_s = backoff_s
         self.max_backoff_s = max_backoff_s
-        self.sleep = sleep
+        self.clock = clock
+        self.sleep = clock.sleep
         self.busy_codes: set[int] = {RC.DeviceBusy}
         self.device_info: DeviceInfo | None = None
         self.vendor: str | None = None
         self.is_open = False
         self.retried = 0  # busy / not-ready responses absorbed so far
+        # operations a body performs but hides in GetDeviceInfo (filled from a per-body table)
+        self.extra_operations: set[int] = set()
         self._tid = 0
 
     # --- session --------------------------------------------------------------------------
@@ -119,6 +121,9 @@ class PtpSession:
             self.transport.close()
 
     def supports(self, opcode: int) -> bool:
+        """GetDeviceInfo lists ``opcode`` (or it is a known hidden operation of this body)."""
+        if opcode in self.extra_operations:
+            return True
         return self.device_info is not None and opcode in self.device_info.operations
 
     def require(self, opcodes, purpose: str) -> None:

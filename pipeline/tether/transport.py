@@ -24,7 +24,6 @@ from pipeline.tether.codes import (
     ClassRequest,
 )
 from pipeline.tether.ptp import (
-    HEADER,
     Container,
     container_length,
     decode_container,
@@ -96,6 +95,17 @@ def find_cameras(backend=None) -> tuple[list, list[str]]:
         if is_camera:
             cameras.append(dev)
     return cameras, seen
+
+
+def no_camera_message(seen: list[str]) -> str:
+    """One line: what was seen on the bus and the usual reasons no camera shows up."""
+    listing = "; ".join(seen) if seen else "no USB devices at all (no permission to list them?)"
+    return (
+        f"no PTP camera (USB Still Image class 6/1/1) found; seen: {listing}. "
+        "Switch the camera on and set its USB mode to PTP (not MTP/mass storage), close "
+        "gvfs/gphoto2 programs that hold it (gio mount -s gphoto2), and check permissions "
+        "(a udev rule, see README 'Real cameras')"
+    )
 
 
 @dataclass(frozen=True)
@@ -187,54 +197,40 @@ class UsbTransport:
             raise self._wrap(err, f"send a {container.type.name.lower()} container") from err
 
     def receive(self, *, timeout_ms: int | None = None) -> Container:
-        """Read one container from bulk-in (multi-transfer payloads, trailing ZLP)."""
+        """Read one container from bulk-in.
+
+        A container may span several transfers; a device that omits the
+        zero-length packet after a container ending on a packet boundary runs
+        the next container into the same read, so bytes past the announced
+        length are kept for the next call. A stray zero-length packet at the
+        start of a read (the ZLP ending the previous container) is skipped.
+        """
         timeout = timeout_ms or self.timeout_ms
         try:
-            blob = self._pending or self._read(MAX_TRANSFER, timeout)
+            blob = self._pending
             self._pending = b""
+            for _ in range(3):
+                if blob:
+                    break
+                blob = self._read(MAX_TRANSFER, timeout)  # b"": a stray ZLP, read again
             length = container_length(blob)
-            parts, got, last_full = [blob], len(blob), len(blob) == MAX_TRANSFER
+            parts, got = [blob], len(blob)
             for size in read_sizes(length - got, self.packet_in, MAX_TRANSFER):
                 chunk = self._read(size, timeout)
                 parts.append(chunk)
                 got += len(chunk)
-                last_full = len(chunk) == size
                 if len(chunk) < size:
                     break
-            if got != length:
+            if got < length:
                 raise TetherError(f"camera sent {got} bytes of a {length}-byte container")
-            if last_full and length % self.packet_in == 0:
-                self._pending = self._read_zlp()
+            whole = b"".join(parts)
+            self._pending = whole[length:]
         except usb.core.USBError as err:
             raise self._wrap(err, "receive from the camera") from err
-        return decode_container(b"".join(parts))
+        return decode_container(whole[:length])
 
     def _read(self, size: int, timeout: int) -> bytes:
         return bytes(self.endpoints.bulk_in.read(size, timeout))
-
-    def _read_zlp(self) -> bytes:
-        """Consume the zero-length packet after a full-packet container, if the camera sent one.
-
-        Bodies that omit it send the next container instead: keep those bytes.
-        """
-        try:
-            return self._read(MAX_TRANSFER, 200)
-        except usb.core.USBTimeoutError:
-            return b""
-
-    def read_event(self, *, timeout_ms: int = 100) -> Container | None:
-        """One event container from the interrupt endpoint, or None if none arrived."""
-        if self.endpoints.interrupt is None:
-            return None
-        try:
-            blob = bytes(self.endpoints.interrupt.read(64, timeout_ms))
-        except usb.core.USBTimeoutError:
-            return None
-        except usb.core.USBError as err:
-            raise self._wrap(err, "read an event") from err
-        if len(blob) < HEADER.size:
-            return None
-        return decode_container(blob[: container_length(blob)])
 
     # --- class requests (USB Still Image class, Sec. 5.2) ---------------------------------
 
