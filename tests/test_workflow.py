@@ -230,17 +230,7 @@ def test_bad_stacks_fail_alone_with_clear_errors(shared_data, tmp_path):
     (root / "empty").mkdir()
     mixed = make_synthetic_stack(root / "mixed", seed=7, frames=3, shape=(48, 64))
     write_image(mixed / "frame_03.png", np.full((40, 64), 0.5, np.float32))
-    path = write_workflow(
-        tmp_path / "wf.toml",
-        """
-[[inputs]]
-directories = "stacks/*"
-[options]
-blur_span_px = 5.0
-[output]
-directory = "out"
-""",
-    )
+    path = write_workflow(tmp_path / "wf.toml", WORKFLOW_OK)
     assert main(["-q", "workflow", "run", str(path)]) == 1
     errors = dict(
         ledger_rows(tmp_path / "out", "SELECT stack, error FROM stacks WHERE status='failed'")

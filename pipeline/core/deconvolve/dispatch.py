@@ -138,6 +138,23 @@ def deconvolve(image, kernel, *, method: str = "wiener", saturation=None, censor
     -------
     ndarray
         Same shape; float32 for float32 input, else float64. Never clipped.
+
+    Examples
+    --------
+    An asymmetric kernel (a one-sided motion blur): restoring with it must undo
+    the blur, which a flipped kernel would not.
+
+    >>> import numpy as np
+    >>> from scipy.ndimage import convolve
+    >>> sharp = np.random.default_rng(0).uniform(0.2, 0.8, (64, 64))
+    >>> kernel = np.zeros((7, 7)); kernel[3, 3:] = [0.4, 0.3, 0.2, 0.1]
+    >>> blurred = convolve(sharp, kernel, mode="wrap")
+    >>> restored = deconvolve(blurred, kernel, noise_sigma=1e-4)
+    >>> def rms(x): return float(np.sqrt(np.mean((x - sharp)[8:-8, 8:-8] ** 2)))
+    >>> rms(restored) < 0.1 * rms(blurred)
+    True
+    >>> rms(deconvolve(blurred, kernel[::-1, ::-1], noise_sigma=1e-4)) > rms(blurred)
+    True
     """
     p = plan(image, kernel, method=method, saturation=saturation, censored=censored, **options)
     return restore(image, p, censored)

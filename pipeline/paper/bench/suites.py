@@ -33,6 +33,13 @@ from pipeline.paper.bench.timing import PendingRun, time_runs
 from pipeline.parallel.tiling import deconvolve_tiled
 
 
+def knob_settings(measure, knob, function, parameter, values, label, **fixed) -> list:
+    """One pending measurement per value of a function's parameter; the function's own
+    default (read from its signature) is marked as the default setting."""
+    default = default_of(function, parameter)
+    return [measure(knob, label.format(v), v == default, **fixed, **{parameter: v}) for v in values]
+
+
 # ----------------------------------------------------------------------------- IPSF
 def ipsf_rows(config: Config) -> list[Row]:
     """Quadrature orders, numeric Eq. 5 steps and truncation on the Sec. 4.1 sweep."""
@@ -52,35 +59,33 @@ def ipsf_rows(config: Config) -> list[Row]:
 
         return PendingRun(build, finish)
 
-    rows = [
-        measure(
-            "pixel-integration order (analytic)",
-            f"{n} nodes",
-            n == default_of(psf.integrated_psf, "theta_order"),
-            theta_order=n,
-        )
-        for n in config.theta_orders
-    ]
-    rows += [
-        measure(
-            "time nodes (numeric Eq. 5)",
-            f"{n} nodes",
-            n == default_of(psf.integrated_psf, "time_order"),
-            method="numeric",
-            time_order=n,
-        )
-        for n in config.time_orders
-    ]
-    rows += [
-        measure(
-            "time sub-interval (numeric Eq. 5)",
-            f"{s:g} px",
-            s == default_of(psf.integrated_psf, "time_step_px"),
-            method="numeric",
-            time_step_px=s,
-        )
-        for s in config.time_steps_px
-    ]
+    ipsf = psf.integrated_psf
+    rows = knob_settings(
+        measure,
+        "pixel-integration order (analytic)",
+        ipsf,
+        "theta_order",
+        config.theta_orders,
+        "{} nodes",
+    )
+    rows += knob_settings(
+        measure,
+        "time nodes (numeric Eq. 5)",
+        ipsf,
+        "time_order",
+        config.time_orders,
+        "{} nodes",
+        method="numeric",
+    )
+    rows += knob_settings(
+        measure,
+        "time sub-interval (numeric Eq. 5)",
+        ipsf,
+        "time_step_px",
+        config.time_steps_px,
+        "{:g} px",
+        method="numeric",
+    )
     rows += [measure("IPSF method", m, m == "analytic", method=m) for m in ("analytic", "numeric")]
     full = refs[0].shape[0]
     for frac in config.size_fractions:
@@ -263,26 +268,24 @@ def deconvolution_rows(config: Config, prep: Prepared) -> list[Row]:
         run("method", "rl (30 it.)", False, method="rl"),
         run("method", "sparse (50 it.)", False, method="sparse"),
     ]
-    rows += [
-        run(
-            "rl iterations",
-            f"{n}",
-            n == default_of(dc.richardson_lucy, "iterations"),
-            method="rl",
-            iterations=n,
-        )
-        for n in config.rl_iterations
-    ]
-    rows += [
-        run(
-            "sparse iterations",
-            f"{n}",
-            n == default_of(dc.sparse, "iterations"),
-            method="sparse",
-            iterations=n,
-        )
-        for n in config.sparse_iterations
-    ]
+    rows += knob_settings(
+        run,
+        "rl iterations",
+        dc.richardson_lucy,
+        "iterations",
+        config.rl_iterations,
+        "{}",
+        method="rl",
+    )
+    rows += knob_settings(
+        run,
+        "sparse iterations",
+        dc.sparse,
+        "iterations",
+        config.sparse_iterations,
+        "{}",
+        method="sparse",
+    )
     rows += [
         run(
             "wiener regularisation",
