@@ -22,10 +22,12 @@ from pathlib import Path
 import pytest
 import usb.core
 
-from pipeline.tether.camera import camera_for
+from pipeline.tether.base import LensAtManual
 from pipeline.tether.canon import CanonEOS, parse_events
 from pipeline.tether.capabilities import body_capability, device_info_from_listing
+from pipeline.tether.clock import VirtualClock
 from pipeline.tether.codes import OC, RC, CanonDPC, CanonEC, CanonOC
+from pipeline.tether.dispatch import camera_for
 from pipeline.tether.ptp import ObjectInfo
 from pipeline.tether.replay import (
     RecordingError,
@@ -54,13 +56,28 @@ def parsed(recordings):
     return {name: load_recording(recordings / name) for name in LOGS}
 
 
+class SleepLog(VirtualClock):
+    """A virtual clock that also keeps every wait asked of it (the session's retry backoff)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sleeps: list[float] = []
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        super().sleep(seconds)
+
+
 def _session(recording, **camera_options):
-    """(session, replaying camera, list of sleeps) over a fresh replay of ``recording``."""
+    """(session, replaying camera, list of sleeps) over a fresh replay of ``recording``.
+
+    The session takes the backend's clock, as ``flows.connect`` does.
+    """
     camera = ReplayCamera(recording, **camera_options)
-    sleeps: list[float] = []
-    device = usb.core.find(backend=ReplayBackend(camera))
-    session = PtpSession(UsbTransport(device), sleep=sleeps.append)
-    return session, camera, sleeps
+    backend = ReplayBackend(camera, clock=SleepLog())
+    device = usb.core.find(backend=backend)
+    session = PtpSession(UsbTransport(device), clock=backend.clock)
+    return session, camera, backend.clock.sleeps
 
 
 def _command_rows(path: Path, opcode: int | None = None) -> int:
@@ -166,18 +183,35 @@ def test_a_command_the_camera_never_received_is_named(parsed):
         camera.check_all_recorded()
 
 
-def test_start_stops_where_the_60d_recording_ends_live_view(parsed):
-    """The recorded session never turned live view on, so CanonEOS.start() cannot be replayed
-    past it: the replay names the SetDevicePropValueEx(EVFOutputDevice = PC) it never saw."""
+def test_start_refuses_the_real_60d_with_its_lens_switch_at_mf(parsed):
+    """The plain log's property dump reports FocusMode (0xD108) = 3: the lens switch was at MF,
+    where DriveLens does nothing; start() stops there, before live view."""
     session, camera, _ = _session(parsed[PLAIN])
+    session.open()
+    driver = camera_for(session)
+    with pytest.raises(LensAtManual, match=r"FocusMode 0xD108 = 3"):
+        driver.start()
+    assert driver.properties[CanonDPC.FocusMode] == 3
+    assert [t.code for t in camera.served][2:] == [
+        CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent, CanonOC.GetEvent]
+    assert len(camera.served[4].data_in) > 7000 and len(camera.served[5].data_in) == 8
+
+
+def test_start_stops_where_the_60d_recording_ends_live_view(parsed):
+    """The pasted log (lens switch at AF, EVFMode already 1) never turned live view on, so
+    CanonEOS.start() cannot be replayed past it: the replay names the
+    SetDevicePropValueEx(EVFOutputDevice = PC) it never saw."""
+    session, camera, _ = _session(parsed[PASTED])
     session.open()
     driver = camera_for(session)
     evf_on = struct.pack("<III", 12, CanonDPC.EVFOutputDevice, 2).hex()
     with pytest.raises(ReplayMismatch,
                        match=rf"SetDevicePropValueEx \(0x9110\)\(\) \+ data {evf_on}"):
         driver.start()
-    assert [t.code for t in camera.served][2:5] == [
-        CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent]
+    assert driver.properties[CanonDPC.FocusMode] == 0
+    assert driver.properties[CanonDPC.EVFMode] == 1  # so no EVFMode write before it
+    assert [t.code for t in camera.served][2:6] == [
+        CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent, CanonOC.GetEvent]
 
 
 @pytest.mark.parametrize("name", LOGS)
