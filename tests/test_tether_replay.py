@@ -231,15 +231,19 @@ def test_every_recorded_getevent_payload_parses(parsed, name):
     assert camera.remaining(CanonOC.GetEvent) == 0
     assert len(camera.served) == 2 + len(payloads)
     assert records == {PLAIN: 358, PASTED: 183}[name]
-    # u32 property values (16-byte records) end up in the driver's table, the last one wins
-    last = {}
+    # every property value ends up whole in the driver's table, the last one wins
+    last, lengths = {}, Counter()
     for payload in payloads:
         for pos, size, kind in _walk(payload):
-            if kind == CanonEC.PropValueChanged and size == 16:
-                prop, value = struct.unpack_from("<II", payload, pos + 8)
-                last[prop] = value
-    assert len(last) > 40
-    assert {p: driver.properties[p] for p in last} == last
+            if kind == CanonEC.PropValueChanged:
+                (prop,) = struct.unpack_from("<I", payload, pos + 8)
+                last[prop] = payload[pos + 12:pos + size]
+                lengths[size - 12] += 1
+    assert len(last) > 60 and lengths[1] and lengths[64]  # 1-byte values and 64-byte ones
+    assert driver.property_bytes == last
+    numbers = {p: int.from_bytes(v, "little") for p, v in last.items() if len(v) in (1, 2, 4)}
+    assert {p: driver.properties[p] for p in numbers} == numbers
+    assert all(isinstance(driver.properties[p], (str, bytes)) for p in last.keys() - numbers)
 
 
 def test_the_property_dump_holds_the_lens_name(parsed):
@@ -393,11 +397,9 @@ def test_a_paste_page_copy_of_the_plain_log_parses_the_same(recordings, parsed, 
     assert rewrapped.id_vendor == 0x04A9
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "real-bytes bug: CanonEOS.poll_events stores a PropValueChanged value only when the record "
-    "holds >= 2 u32 words, so the 60D's 13-byte record 0d000000 89c10000 15d10000 00 "
-    "(property 0xD115, 1-byte value 0) is dropped"))
 def test_one_byte_property_values_are_kept(parsed):
+    """The 60D's 13-byte record 0d000000 89c10000 15d10000 00: property 0xD115 (Owner), one
+    value byte 0. It used to be dropped (the driver wanted two u32 words)."""
     rec = parsed[PASTED]
     small = next(t for t in rec.with_code(CanonOC.GetEvent) if len(t.data_in) == 195)
     assert small.data_in[:13] == bytes.fromhex("0d00000089c1000015d1000000")
@@ -407,6 +409,30 @@ def test_one_byte_property_values_are_kept(parsed):
     driver = camera_for(session)
     driver.poll_events()
     assert driver.properties.get(0xD115) == 0
+    assert driver.property_bytes[0xD115] == b"\x00" and driver.property_text(0xD115) == ""
+
+
+@pytest.mark.parametrize(("name", "serial", "artist", "lens"), [
+    (PLAIN, "1280627086", "Matthias Jansen", "EF-S15-85mm f/3.5-5.6 IS USM"),
+    (PASTED, "680422199", "", "EF-S18-55mm f/3.5-5.6 IS"),
+])
+def test_string_and_array_property_values_are_not_truncated(parsed, name, serial, artist, lens):
+    """Strings and arrays used to keep only their first 4 bytes (serial 680422199 read as the
+    u32 0x34303836, "6804")."""
+    session, _camera, _ = _session(parsed[name])
+    session.open()
+    driver = camera_for(session)
+    for _ in parsed[name].with_code(CanonOC.GetEvent):
+        driver.poll_events()
+    assert driver.properties[CanonDPC.SerialNumber] == serial
+    assert driver.property_bytes[CanonDPC.SerialNumber] == serial.encode() + b"\x00"
+    assert driver.properties[CanonDPC.Artist] == driver.properties[CanonDPC.Copyright] == artist
+    assert len(driver.property_bytes[CanonDPC.Artist]) == 64
+    assert driver.properties[CanonDPC.LensName] == lens
+    # arrays stay bytes, whole: custom functions (0xD1A0), focus info (0xD1D3)
+    assert isinstance(driver.properties[0xD1D3], bytes)
+    assert len(driver.property_bytes[0xD1D3]) == 100
+    assert driver.properties[0xD1A0] == driver.property_bytes[0xD1A0]
 
 
 def test_listing_a_recording_from_the_command_line(recordings, tmp_path, capsys):
