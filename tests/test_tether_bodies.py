@@ -247,3 +247,14 @@ def test_connect_accepts_the_hidden_operation_the_body_table_names():
         camera.drive(2)
     assert [params for _tid, op, params in cam.transactions if op == CanonOC.DriveLens] == [
         (0x8001,), (0x8001,)]
+
+
+def test_tether_list_prints_the_decision_for_stack_and_sweep(capsys):
+    from pipeline import cli
+
+    assert cli.main(["tether", "list", "--emulate", "nikon"]) == 0
+    line = capsys.readouterr().out.splitlines()[1]
+    assert line.startswith("04b0:0429  Nikon Corporation Nikon D5100 (emulated)")
+    assert line.endswith(f"focal stack: yes  sweep: no ({NIKON_NO_SWEEP})")
+    assert cli.main(["tether", "list", "--emulate", "canon", "--personality", "eos-r"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].endswith("focal stack: yes  sweep: yes")
