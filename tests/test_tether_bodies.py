@@ -16,7 +16,6 @@ from pathlib import Path
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.tether.camera import camera_for
 from pipeline.tether.canon import CanonEOS
 from pipeline.tether.capabilities import (
     CanonLiveViewOC,
@@ -25,6 +24,10 @@ from pipeline.tether.capabilities import (
     vendor_of,
 )
 from pipeline.tether.codes import OC, CanonOC, NikonOC
+from pipeline.tether.dispatch import camera_for
+from pipeline.tether.emulated.device import EmulatedBackend, EmulatedCamera
+from pipeline.tether.emulated.personalities import CANON
+from pipeline.tether.flows import connect
 from pipeline.tether.nikon import Nikon
 from pipeline.tether.ptp import DeviceInfo
 from pipeline.tether.session import PtpSession, UnsupportedCamera
@@ -57,12 +60,13 @@ def test_body_table_counts(table):
     assert summary["listings"] == len(table) == 115
     assert summary["with an operation list"] == 78
     assert summary["focal stack accepted"] == 58
-    assert summary["sweep accepted"] == 49
+    assert summary["sweep accepted"] == 36  # the Canon bodies that can stack
     assert summary["focal stack refused"] == 20
+    assert summary["sweep refused"] == 42
     refusals = {k: v for k, v in summary.items() if k.startswith(("stack and", "sweep only"))}
     assert refusals == {
+        "sweep only: Nikon: sweep not supported": 22,  # every Nikon body that can stack
         "stack and sweep: no live view / MfDrive in GetDeviceInfo": 9,
-        "sweep only: no TerminateCapture: cannot end a bulb exposure over USB": 9,
         "stack and sweep: lists no Nikon vendor operations": 4,
         "stack and sweep: no live view or DriveLens in GetDeviceInfo": 3,
         "stack and sweep: only the one-shot RemoteRelease, no RemoteReleaseOn/Off": 3,
@@ -70,6 +74,8 @@ def test_body_table_counts(table):
     }
     assert summary[_script().NO_LIST] == 37
 
+
+NIKON_NO_SWEEP = "Nikon: sweep not supported (live view is prohibited in bulb; no bulb path)"
 
 KNOWN_BODIES = [
     ("canon-eos60d.txt", "Canon EOS 60D", True, True, ""),
@@ -82,11 +88,10 @@ KNOWN_BODIES = [
     ("nikon-d3300.txt", "D3300", False, False,
      "lists no Nikon vendor operations (live view, MfDrive and SDRAM capture hidden) (lacks "
      "StartLiveView (0x9201), EndLiveView (0x9202), MfDrive (0x9204)"),
-    ("nikon-d90.txt", "D90", True, False,
-     "no TerminateCapture: cannot end a bulb exposure over USB (lacks TerminateCapture (0x920C))"),
-    ("nikon-d7000.txt", "D7000", True, False, "no TerminateCapture"),  # lists without headers
-    ("nikon-d5300.txt", "D5300", True, True, ""),  # codes followed by their names
-    ("nikon-z9.txt", "Z 9", True, True, ""),
+    ("nikon-d90.txt", "D90", True, False, NIKON_NO_SWEEP),
+    ("nikon-d7000.txt", "D7000", True, False, NIKON_NO_SWEEP),  # lists without headers
+    ("nikon-d5300.txt", "D5300", True, False, NIKON_NO_SWEEP),  # codes followed by their names
+    ("nikon-z9.txt", "Z 9", True, False, NIKON_NO_SWEEP),
 ]
 
 
@@ -169,11 +174,37 @@ def test_canon_reasons():
                                      "(lacks DriveLens (0x9155))")
 
 
-def test_nikon_sweep_needs_terminate_capture():
-    ops = set(Nikon.stack_ops)
-    cap = body_capability(_info(ops, ext=0xA, maker="Nikon Corporation"))
-    assert cap.stack and not cap.sweep and cap.sweep_missing == (NikonOC.TerminateCapture,)
-    assert body_capability(_info(ops | {NikonOC.TerminateCapture}, ext=0xA)).sweep
+def test_nikon_sweep_is_refused_whatever_the_body_lists():
+    ops = set(Nikon.stack_ops) | {NikonOC.TerminateCapture}
+    cap = body_capability(_info(ops, ext=0xA, maker="Nikon Corporation", model="D850"))
+    assert cap.stack and not cap.sweep and cap.sweep_missing == ()
+    assert cap.sweep_reason == Nikon.sweep_refusal == NIKON_NO_SWEEP
+    assert cap.category == "Nikon: sweep not supported"
+    assert cap.refusal() == ""
+    assert cap.refusal(sweep=True) == (f"D850 cannot run a focus sweep: {NIKON_NO_SWEEP}; "
+                                       "capture a focal stack (tether stack) instead")
+    # a Nikon body that cannot stack is refused the sweep for the same missing operations
+    short = body_capability(_info(ops - {NikonOC.MfDrive}, ext=0xA))
+    assert short.sweep_missing == short.stack_missing == (NikonOC.MfDrive,)
+    assert short.sweep_reason == short.stack_reason
+
+
+def test_hidden_operations_count_when_the_body_table_names_them():
+    ops = set(CanonEOS.stack_ops) - {CanonOC.DriveLens}
+    assert not body_capability(_info(ops)).stack
+    cap = body_capability(_info(ops), extra_operations={CanonOC.DriveLens})
+    assert cap.stack and cap.sweep
+
+
+def test_the_decision_uses_the_drivers_own_requirements(monkeypatch):
+    """A driver that starts needing another operation changes the decision with it."""
+    ops = set(CanonEOS.stack_ops)
+    assert body_capability(_info(ops)).stack
+    monkeypatch.setattr(CanonEOS, "stack_ops", (*CanonEOS.stack_ops, OC.GetObjectInfo))
+    cap = body_capability(_info(ops))
+    assert not cap.stack and cap.stack_missing == (OC.GetObjectInfo,)
+    monkeypatch.setattr(CanonEOS, "sweep_refusal", "no bulb path here")
+    assert body_capability(_info(ops | {OC.GetObjectInfo})).sweep_reason == "no bulb path here"
 
 
 def test_listing_errors_name_the_file(tmp_path):
@@ -184,3 +215,46 @@ def test_listing_errors_name_the_file(tmp_path):
                    "  0x1001\n")
     with pytest.raises(InputError, match=r"bad.txt:2: 'Vendor extension ID' is not a hex number"):
         device_info_from_listing(bad)
+
+
+# --- the decision on the connect path, through the emulator -----------------------------------
+
+
+@pytest.mark.parametrize(("bulb", "hidden", "line"), [
+    (False, {CanonOC.DriveLens},
+     "Canon EOS 60D (emulated) cannot capture a focal stack: no live view or DriveLens in "
+     "GetDeviceInfo (lacks DriveLens (0x9155))"),
+    (True, {CanonOC.RemoteReleaseOn, CanonOC.RemoteReleaseOff},
+     "Canon EOS 60D (emulated) cannot run a focus sweep: only the one-shot RemoteRelease, no "
+     "RemoteReleaseOn/Off (lacks RemoteReleaseOn (0x9128), RemoteReleaseOff (0x9129))"),
+])
+def test_connect_refuses_a_body_hiding_an_operation_before_any_capture(bulb, hidden, line):
+    cam = EmulatedCamera(CANON.but(hidden_ops=frozenset(hidden)))
+    with pytest.raises(UnsupportedCamera) as caught:
+        with connect(EmulatedBackend(cam), bulb=bulb):
+            pytest.fail("a refused body must not reach the flow")
+    assert str(caught.value) == line and "\n" not in line
+    # the session opened, was judged and closed: no remote mode, live view, drive or shot
+    assert [op for _tid, op, _params in cam.transactions] == [OC.GetDeviceInfo, OC.OpenSession,
+                                                              OC.CloseSession]
+    assert not cam.shots and not cam.session_open
+
+
+def test_connect_accepts_the_hidden_operation_the_body_table_names():
+    hidden = frozenset({CanonOC.DriveLens})
+    cam = EmulatedCamera(CANON.but(hidden_ops=hidden))
+    with connect(EmulatedBackend(cam), known_operations=hidden) as camera:
+        camera.drive(2)
+    assert [params for _tid, op, params in cam.transactions if op == CanonOC.DriveLens] == [
+        (0x8001,), (0x8001,)]
+
+
+def test_tether_list_prints_the_decision_for_stack_and_sweep(capsys):
+    from pipeline import cli
+
+    assert cli.main(["tether", "list", "--emulate", "nikon"]) == 0
+    line = capsys.readouterr().out.splitlines()[1]
+    assert line.startswith("04b0:0429  Nikon Corporation Nikon D5100 (emulated)")
+    assert line.endswith(f"focal stack: yes  sweep: no ({NIKON_NO_SWEEP})")
+    assert cli.main(["tether", "list", "--emulate", "canon", "--personality", "eos-r"]) == 0
+    assert capsys.readouterr().out.splitlines()[1].endswith("focal stack: yes  sweep: yes")

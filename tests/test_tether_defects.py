@@ -136,7 +136,10 @@ def test_d4_nikon_device_ready_waits_through_a_long_busy_body(tmp_path, busy_cod
 
 def test_d5_nikon_sweep_is_refused_before_live_view(tmp_path):
     cam = EmulatedCamera(NIKON, shutter="bulb")
-    with pytest.raises(UnsupportedCamera, match="prohibit live view in bulb"):
+    with pytest.raises(UnsupportedCamera, match=r"^Nikon D5100 \(emulated\) cannot run a focus "
+                                                r"sweep: Nikon: sweep not supported \(live view "
+                                                r"is prohibited in bulb; no bulb path\); capture a "
+                                                r"focal stack \(tether stack\) instead$"):
         with connect(EmulatedBackend(cam), bulb=True) as camera:
             capture_sweep(camera, tmp_path, [(0.1, 5)], 1.0, lens=LENS, fallback_step=5)
     assert not _ops(cam, NikonOC.StartLiveView) and not cam.shots

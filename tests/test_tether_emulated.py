@@ -180,8 +180,9 @@ def test_no_camera_lists_what_was_seen():
 def test_unsupported_camera_names_missing_operations():
     ops = tuple(op for op in CANON.operations if op != CanonOC.DriveLens)
     cam = EmulatedCamera(CANON.but(operations=ops, model="Old EOS"))
-    with pytest.raises(UnsupportedCamera, match=r"Old EOS cannot capture a focal stack: it lacks "
-                                                r"DriveLens \(0x9155\)"):
+    with pytest.raises(UnsupportedCamera, match=r"^Old EOS cannot capture a focal stack: no live "
+                                                r"view or DriveLens in GetDeviceInfo \(lacks "
+                                                r"DriveLens \(0x9155\)\)$"):
         with connect(EmulatedBackend(cam)):
             pass
     assert not cam.session_open

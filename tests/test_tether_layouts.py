@@ -133,13 +133,18 @@ def test_real_eos_event_payload_parses_and_matches_the_emulator_records():
 def test_real_60d_get_event_data_matches_the_emulator_records():
     payloads = containers(LOG_60D, 2, CanonOC.GetEvent)
     assert len(payloads) >= 15
-    checked = 0
+    checked, other_sizes = 0, set()
     for data in payloads:
         for e in canon.parse_events(data):
             if e.type == CanonEC.PropValueChanged and len(e.raw) == 16:
                 assert layouts.eos_prop_value(e.words[0], e.words[1]) == e.raw
                 checked += 1
+            if e.type == CanonEC.PropValueChanged:  # any length: 13 (one byte) to 200 bytes
+                (prop,) = struct.unpack_from("<I", e.raw, 8)
+                assert layouts.eos_prop_raw(prop, e.raw[12:]) == e.raw
+                other_sizes.add(len(e.raw))
     assert checked >= 20
+    assert {13, 23, 76} <= other_sizes  # Owner (1 byte), serial "1280627086", lens name
     assert payloads[-1].endswith(layouts.EOS_TERMINATOR)
 
 
@@ -167,3 +172,18 @@ def test_host_property_write_is_the_real_60d_data_phase():
     sent = containers(LOG_60D, 2, CanonOC.SetDevicePropValueEx)
     assert bytes.fromhex("0c0000001cd1000004000000") in sent
     assert canon.property_data(CanonDPC.CaptureDestination, 4) in sent
+
+
+def test_emulated_property_dump_values_reach_the_host_whole():
+    """The emulator's dump holds values that are not one u32 (as the 60D's): the host keeps
+    them whole through a real connect."""
+    from pipeline.tether.emulated.device import EmulatedBackend, EmulatedCamera
+    from pipeline.tether.emulated.personalities import CANON
+    from pipeline.tether.flows import connect
+
+    with connect(EmulatedBackend(EmulatedCamera(CANON))) as camera:
+        assert camera.property_bytes[CanonDPC.Owner] == b"\x00"
+        assert camera.properties[CanonDPC.Owner] == 0 and camera.property_text(0xD115) == ""
+        assert camera.properties[CanonDPC.SerialNumber] == "EMU0001"
+        assert camera.properties[CanonDPC.LensName] == "EF50mm f/1.8 (emulated)"
+        assert len(camera.property_bytes[CanonDPC.LensName]) == 64

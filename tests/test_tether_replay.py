@@ -22,10 +22,12 @@ from pathlib import Path
 import pytest
 import usb.core
 
-from pipeline.tether.camera import camera_for
+from pipeline.tether.base import LensAtManual
 from pipeline.tether.canon import CanonEOS, parse_events
 from pipeline.tether.capabilities import body_capability, device_info_from_listing
+from pipeline.tether.clock import VirtualClock
 from pipeline.tether.codes import OC, RC, CanonDPC, CanonEC, CanonOC
+from pipeline.tether.dispatch import camera_for
 from pipeline.tether.ptp import ObjectInfo
 from pipeline.tether.replay import (
     RecordingError,
@@ -54,13 +56,28 @@ def parsed(recordings):
     return {name: load_recording(recordings / name) for name in LOGS}
 
 
+class SleepLog(VirtualClock):
+    """A virtual clock that also keeps every wait asked of it (the session's retry backoff)."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sleeps: list[float] = []
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        super().sleep(seconds)
+
+
 def _session(recording, **camera_options):
-    """(session, replaying camera, list of sleeps) over a fresh replay of ``recording``."""
+    """(session, replaying camera, list of sleeps) over a fresh replay of ``recording``.
+
+    The session takes the backend's clock, as ``flows.connect`` does.
+    """
     camera = ReplayCamera(recording, **camera_options)
-    sleeps: list[float] = []
-    device = usb.core.find(backend=ReplayBackend(camera))
-    session = PtpSession(UsbTransport(device), sleep=sleeps.append)
-    return session, camera, sleeps
+    backend = ReplayBackend(camera, clock=SleepLog())
+    device = usb.core.find(backend=backend)
+    session = PtpSession(UsbTransport(device), clock=backend.clock)
+    return session, camera, backend.clock.sleeps
 
 
 def _command_rows(path: Path, opcode: int | None = None) -> int:
@@ -166,18 +183,35 @@ def test_a_command_the_camera_never_received_is_named(parsed):
         camera.check_all_recorded()
 
 
-def test_start_stops_where_the_60d_recording_ends_live_view(parsed):
-    """The recorded session never turned live view on, so CanonEOS.start() cannot be replayed
-    past it: the replay names the SetDevicePropValueEx(EVFOutputDevice = PC) it never saw."""
+def test_start_refuses_the_real_60d_with_its_lens_switch_at_mf(parsed):
+    """The plain log's property dump reports FocusMode (0xD108) = 3: the lens switch was at MF,
+    where DriveLens does nothing; start() stops there, before live view."""
     session, camera, _ = _session(parsed[PLAIN])
+    session.open()
+    driver = camera_for(session)
+    with pytest.raises(LensAtManual, match=r"FocusMode 0xD108 = 3"):
+        driver.start()
+    assert driver.properties[CanonDPC.FocusMode] == 3
+    assert [t.code for t in camera.served][2:] == [
+        CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent, CanonOC.GetEvent]
+    assert len(camera.served[4].data_in) > 7000 and len(camera.served[5].data_in) == 8
+
+
+def test_start_stops_where_the_60d_recording_ends_live_view(parsed):
+    """The pasted log (lens switch at AF, EVFMode already 1) never turned live view on, so
+    CanonEOS.start() cannot be replayed past it: the replay names the
+    SetDevicePropValueEx(EVFOutputDevice = PC) it never saw."""
+    session, camera, _ = _session(parsed[PASTED])
     session.open()
     driver = camera_for(session)
     evf_on = struct.pack("<III", 12, CanonDPC.EVFOutputDevice, 2).hex()
     with pytest.raises(ReplayMismatch,
                        match=rf"SetDevicePropValueEx \(0x9110\)\(\) \+ data {evf_on}"):
         driver.start()
-    assert [t.code for t in camera.served][2:5] == [
-        CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent]
+    assert driver.properties[CanonDPC.FocusMode] == 0
+    assert driver.properties[CanonDPC.EVFMode] == 1  # so no EVFMode write before it
+    assert [t.code for t in camera.served][2:6] == [
+        CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent, CanonOC.GetEvent]
 
 
 @pytest.mark.parametrize("name", LOGS)
@@ -197,15 +231,19 @@ def test_every_recorded_getevent_payload_parses(parsed, name):
     assert camera.remaining(CanonOC.GetEvent) == 0
     assert len(camera.served) == 2 + len(payloads)
     assert records == {PLAIN: 358, PASTED: 183}[name]
-    # u32 property values (16-byte records) end up in the driver's table, the last one wins
-    last = {}
+    # every property value ends up whole in the driver's table, the last one wins
+    last, lengths = {}, Counter()
     for payload in payloads:
         for pos, size, kind in _walk(payload):
-            if kind == CanonEC.PropValueChanged and size == 16:
-                prop, value = struct.unpack_from("<II", payload, pos + 8)
-                last[prop] = value
-    assert len(last) > 40
-    assert {p: driver.properties[p] for p in last} == last
+            if kind == CanonEC.PropValueChanged:
+                (prop,) = struct.unpack_from("<I", payload, pos + 8)
+                last[prop] = payload[pos + 12:pos + size]
+                lengths[size - 12] += 1
+    assert len(last) > 60 and lengths[1] and lengths[64]  # 1-byte values and 64-byte ones
+    assert driver.property_bytes == last
+    numbers = {p: int.from_bytes(v, "little") for p, v in last.items() if len(v) in (1, 2, 4)}
+    assert {p: driver.properties[p] for p in numbers} == numbers
+    assert all(isinstance(driver.properties[p], (str, bytes)) for p in last.keys() - numbers)
 
 
 def test_the_property_dump_holds_the_lens_name(parsed):
@@ -359,11 +397,9 @@ def test_a_paste_page_copy_of_the_plain_log_parses_the_same(recordings, parsed, 
     assert rewrapped.id_vendor == 0x04A9
 
 
-@pytest.mark.xfail(strict=True, raises=AssertionError, reason=(
-    "real-bytes bug: CanonEOS.poll_events stores a PropValueChanged value only when the record "
-    "holds >= 2 u32 words, so the 60D's 13-byte record 0d000000 89c10000 15d10000 00 "
-    "(property 0xD115, 1-byte value 0) is dropped"))
 def test_one_byte_property_values_are_kept(parsed):
+    """The 60D's 13-byte record 0d000000 89c10000 15d10000 00: property 0xD115 (Owner), one
+    value byte 0. It used to be dropped (the driver wanted two u32 words)."""
     rec = parsed[PASTED]
     small = next(t for t in rec.with_code(CanonOC.GetEvent) if len(t.data_in) == 195)
     assert small.data_in[:13] == bytes.fromhex("0d00000089c1000015d1000000")
@@ -373,6 +409,30 @@ def test_one_byte_property_values_are_kept(parsed):
     driver = camera_for(session)
     driver.poll_events()
     assert driver.properties.get(0xD115) == 0
+    assert driver.property_bytes[0xD115] == b"\x00" and driver.property_text(0xD115) == ""
+
+
+@pytest.mark.parametrize(("name", "serial", "artist", "lens"), [
+    (PLAIN, "1280627086", "Matthias Jansen", "EF-S15-85mm f/3.5-5.6 IS USM"),
+    (PASTED, "680422199", "", "EF-S18-55mm f/3.5-5.6 IS"),
+])
+def test_string_and_array_property_values_are_not_truncated(parsed, name, serial, artist, lens):
+    """Strings and arrays used to keep only their first 4 bytes (serial 680422199 read as the
+    u32 0x34303836, "6804")."""
+    session, _camera, _ = _session(parsed[name])
+    session.open()
+    driver = camera_for(session)
+    for _ in parsed[name].with_code(CanonOC.GetEvent):
+        driver.poll_events()
+    assert driver.properties[CanonDPC.SerialNumber] == serial
+    assert driver.property_bytes[CanonDPC.SerialNumber] == serial.encode() + b"\x00"
+    assert driver.properties[CanonDPC.Artist] == driver.properties[CanonDPC.Copyright] == artist
+    assert len(driver.property_bytes[CanonDPC.Artist]) == 64
+    assert driver.properties[CanonDPC.LensName] == lens
+    # arrays stay bytes, whole: custom functions (0xD1A0), focus info (0xD1D3)
+    assert isinstance(driver.properties[0xD1D3], bytes)
+    assert len(driver.property_bytes[0xD1D3]) == 100
+    assert driver.properties[0xD1A0] == driver.property_bytes[0xD1A0]
 
 
 def test_listing_a_recording_from_the_command_line(recordings, tmp_path, capsys):

@@ -106,9 +106,9 @@ def _lens(args):
 
 
 def _list(args) -> int:
+    from pipeline.tether.capabilities import body_capability
     from pipeline.tether.clock import SYSTEM_CLOCK
-    from pipeline.tether.dispatch import camera_for
-    from pipeline.tether.session import PtpSession, UnsupportedCamera
+    from pipeline.tether.session import PtpSession
     from pipeline.tether.transport import UsbTransport, find_cameras, no_camera_message
 
     backend = _backend(args)
@@ -120,14 +120,11 @@ def _list(args) -> int:
         session = PtpSession(UsbTransport(device), clock=getattr(backend, "clock", SYSTEM_CLOCK))
         try:
             info = session.open()
-            try:
-                camera = camera_for(session)
-                camera.check_supported()
-                stack = "focal stack: yes"
-            except UnsupportedCamera as err:
-                stack = f"focal stack: no ({err})"
+            cap = body_capability(info)  # the decision the stack and sweep commands apply
+            stack = "yes" if cap.stack else f"no ({cap.stack_reason})"
+            sweep = "yes" if cap.sweep else f"no ({cap.sweep_reason})"
             print(f"{device.idVendor:04x}:{device.idProduct:04x}  {info.manufacturer} "
-                  f"{info.model}  vendor={session.vendor}  {stack}")
+                  f"{info.model}  vendor={session.vendor}  focal stack: {stack}  sweep: {sweep}")
         finally:
             session.close()
     return 0

@@ -6,6 +6,7 @@ Modules: ``codes`` (protocol numbers), ``ptp`` (container and dataset codec),
 errors), ``canon``/``nikon`` (vendor drivers), ``dispatch`` (driver for a
 session), ``flows`` (stack and sweep capture), ``calibrate`` (step size from
 magnification), ``emulated`` (an emulated camera as a pyusb backend, its
-personalities, byte layouts and scene). ``camera`` and ``emulator`` only
-re-export names for older imports.
+personalities, byte layouts and scene), ``capabilities`` (which bodies the
+flows accept, from GetDeviceInfo), ``replay`` (recorded gphoto2 --debug traffic
+as a pyusb backend).
 """

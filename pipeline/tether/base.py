@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 from pipeline.errors import TetherError
 from pipeline.tether.ptp import iter_chunks
-from pipeline.tether.session import PtpError, PtpSession
+from pipeline.tether.session import PtpError, PtpSession, UnsupportedCamera
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +81,7 @@ class FocusCamera:
     vendor = ""
     stack_ops = ()
     bulb_ops = ()
+    sweep_refusal = ""  # non-empty: why no body of this vendor can sweep, whatever it lists
     refusal_codes = ()
     event_timeout_s = 90.0  # libgphoto2 waits 90 s (long exposures, noise reduction)
 
@@ -96,10 +97,29 @@ class FocusCamera:
         """The session's clock (``now()``, ``sleep()``)."""
         return self.session.clock
 
+    @classmethod
+    def required_operations(cls, *, bulb: bool = False) -> tuple[int, ...]:
+        """The operations the stack flow (``bulb=False``) or the sweep flow needs, in order."""
+        return tuple(dict.fromkeys((*cls.stack_ops, *cls.bulb_ops))) if bulb else cls.stack_ops
+
+    @classmethod
+    def missing_operations(cls, supports, *, bulb: bool = False) -> tuple[int, ...]:
+        """Operations of :meth:`required_operations` for which ``supports(op)`` is false."""
+        return tuple(op for op in cls.required_operations(bulb=bulb) if not supports(op))
+
     def check_supported(self, *, bulb: bool = False) -> None:
-        """Raise :class:`~pipeline.tether.session.UnsupportedCamera` if a flow cannot run."""
+        """Raise :class:`~pipeline.tether.session.UnsupportedCamera` if a flow cannot run.
+
+        The same rules as :func:`pipeline.tether.capabilities.body_capability`
+        (both use :meth:`missing_operations` and :attr:`sweep_refusal`).
+        """
         self.session.require(self.stack_ops, "capture a focal stack")
         if bulb:
+            if self.sweep_refusal:
+                model = self.session.device_info.model if self.session.device_info else "camera"
+                raise UnsupportedCamera(
+                    f"{model} cannot drive the focus in bulb: {self.sweep_refusal}; capture a "
+                    "focal stack (tether stack) instead")
             self.session.require(self.bulb_ops, "expose in bulb while driving the focus")
 
     def start(self) -> None:

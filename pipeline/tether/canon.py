@@ -13,6 +13,10 @@ The order of operations follows libgphoto2 (``camlibs/ptp2/library.c``,
 * capture: GetEvent until empty (else the release answers busy), then
   RemoteReleaseOn(3 = full press, 1 = no AF) and RemoteReleaseOff(3): the AF
   release (second parameter 0) would refocus and undo the drive;
+* events: PropValueChanged (0xC189) records carry ``u32 property`` and a value
+  whose length is the record's: 1, 2 or 4 bytes for numbers, and strings (serial
+  number, lens name, owner) or arrays of up to dozens of bytes; every value is
+  kept whole (:attr:`CanonEOS.property_bytes`) and decoded by its length;
 * new image: ObjectAddedEx (0xC181) or ObjectAddedEx64 (0xC1A7, EOS R era) for
   an image on the card; RequestObjectTransfer (0xC186) for one held in RAM
   (CaptureDestination = PC), which is released with TransferComplete after the
@@ -34,6 +38,7 @@ from pipeline.tether.codes import (
     CANON_FOCUS_MODE_MF,
     CANON_REMOTE_MODE,
     CANON_REMOTE_MODE_EOS_M,
+    CANON_STRING_PROPERTIES,
     OBJECT_FORMAT_ASSOCIATION,
     CanonDPC,
     CanonEC,
@@ -90,6 +95,28 @@ def parse_events(data: bytes) -> list[CanonEvent]:
     return events
 
 
+def property_value(prop: int, raw: bytes) -> int | str | bytes:
+    """A PropValueChanged value, decoded by its length.
+
+    1, 2 or 4 bytes: an unsigned little-endian integer (the 60D sends a 1-byte
+    record ``0d000000 89c10000 15d10000 00`` for 0xD115); a longer value of a
+    string property (:data:`~pipeline.tether.codes.CANON_STRING_PROPERTIES`) is
+    its text up to the first NUL; any other value stays bytes (an array). A
+    string property may also arrive as 1-4 bytes (an empty Owner 0xD115 is the
+    single NUL byte) and is then an integer here: :meth:`CanonEOS.property_text`
+    reads any value as text.
+    """
+    if len(raw) in (1, 2, 4):
+        return int.from_bytes(raw, "little")
+    if prop in CANON_STRING_PROPERTIES:
+        return _text(raw)
+    return raw
+
+
+def _text(raw: bytes) -> str:
+    return raw.split(b"\x00", 1)[0].decode("ascii", "replace")
+
+
 def object_of(ev: CanonEvent) -> tuple[CapturedObject, int] | None:
     """The object a new-image record announces, with its format; None for other records.
 
@@ -140,7 +167,8 @@ class CanonEOS(FocusCamera):
                         DRIVE_PACE_S[self.drive_size] * 1e3)
         self.session.busy_codes |= {CanonRC.ObjectNotReady, CanonRC.MemoryStatusNotReady}
         self.status = 0
-        self.properties: dict[int, int] = {}
+        self.properties: dict[int, int | str | bytes] = {}  # decoded (property_value)
+        self.property_bytes: dict[int, bytes] = {}  # each value exactly as the camera sent it
         self._objects: list[CapturedObject] = []
         self._last_drive = -1e9
         info = self.session.device_info
@@ -155,13 +183,23 @@ class CanonEOS(FocusCamera):
         s.transaction(CanonOC.SetEventMode, (1,))
         self.drain_events()
         self._check_lens_switch()
-        if self.properties.get(CanonDPC.EVFMode) != 1:
+        if self.property_int(CanonDPC.EVFMode) != 1:
             self.set_property(CanonDPC.EVFMode, 1)
         self.set_property(CanonDPC.EVFOutputDevice, CANON_EVF_PC)
         self._poll("live view (EVFMode 1, EVF output to PC)", self._evf_on, timeout_s=10.0)
 
+    def property_int(self, prop: int, default: int | None = None) -> int | None:
+        """The last value of ``prop`` if it is a number, else ``default``."""
+        value = self.properties.get(prop)
+        return value if isinstance(value, int) else default
+
+    def property_text(self, prop: int) -> str | None:
+        """The last value of ``prop`` read as a NUL-terminated ASCII string (None if unseen)."""
+        raw = self.property_bytes.get(prop)
+        return None if raw is None else _text(raw)
+
     def _check_lens_switch(self) -> None:
-        if self.properties.get(CanonDPC.FocusMode) == CANON_FOCUS_MODE_MF:
+        if self.property_int(CanonDPC.FocusMode) == CANON_FOCUS_MODE_MF:
             raise LensAtManual(
                 "the lens focus switch is at MF (FocusMode 0xD108 = 3): the camera ignores "
                 "DriveLens there; set the switch to AF (frames are shot with the no-AF release)"
@@ -169,8 +207,8 @@ class CanonEOS(FocusCamera):
 
     def _evf_on(self):
         self.poll_events()
-        on = (self.properties.get(CanonDPC.EVFOutputDevice, 0) & CANON_EVF_PC
-              and self.properties.get(CanonDPC.EVFMode) == 1)
+        on = (self.property_int(CanonDPC.EVFOutputDevice, 0) & CANON_EVF_PC
+              and self.property_int(CanonDPC.EVFMode) == 1)
         return True if on else None
 
     def set_property(self, prop: int, value: int) -> None:
@@ -180,12 +218,14 @@ class CanonEOS(FocusCamera):
     # --- events -----------------------------------------------------------------------------
 
     def poll_events(self) -> list[CanonEvent]:
-        """GetEvent once; remembers property values, camera status and new images."""
+        """GetEvent once; remembers property values (whole), camera status and new images."""
         data = self.session.transaction(CanonOC.GetEvent, want_data=True).data
         events = parse_events(data)
         for ev in events:
-            if ev.type == CanonEC.PropValueChanged and len(ev.words) >= 2:
-                self.properties[ev.words[0]] = ev.words[1]
+            if ev.type == CanonEC.PropValueChanged and len(ev.raw) >= 12:
+                prop, raw = ev.u32(8), ev.raw[12:]
+                self.property_bytes[prop] = raw
+                self.properties[prop] = property_value(prop, raw)
             elif ev.type == CanonEC.CameraStatusChanged and ev.words:
                 self.status = ev.words[0]
             else:

@@ -3,12 +3,15 @@
 :func:`body_capability` takes the :class:`~pipeline.tether.ptp.DeviceInfo` that
 :meth:`PtpSession.open() <pipeline.tether.session.PtpSession.open>` gets from the
 camera and says whether the focal-stack flow and the focus-sweep flow can run
-on it, and if not, why. The operations it requires are the vendor drivers' own
-``stack_ops`` / ``bulb_ops`` (the ones :meth:`FocusCamera.check_supported
-<pipeline.tether.camera.FocusCamera.check_supported>` enforces), so the
+on it, and if not, why. It asks the vendor driver itself
+(:meth:`FocusCamera.missing_operations
+<pipeline.tether.base.FocusCamera.missing_operations>` and
+:attr:`~pipeline.tether.base.FocusCamera.sweep_refusal`, the rules
+:meth:`~pipeline.tether.base.FocusCamera.check_supported` enforces), so the
 decision and the code path cannot drift apart; the reasons name what a body
 lacks in the terms of the flow (no lens drive, no live view, only the one-shot
-release, ...).
+release, no bulb path on Nikon, ...). :func:`pipeline.tether.flows.connect`
+runs it on the camera's own GetDeviceInfo right after the session opens.
 
 :func:`device_info_from_listing` is a data adapter for tests and the body
 table: it builds the same ``DeviceInfo`` from a ``gphoto2 --summary`` /
@@ -24,14 +27,13 @@ from enum import IntEnum
 from pathlib import Path
 
 from pipeline.errors import InputError
-from pipeline.tether.canon import CanonEOS
 from pipeline.tether.codes import (
     PTP_VENDOR_EXTENSION_IDS,
     CanonOC,
     NikonOC,
     operation_name,
 )
-from pipeline.tether.nikon import Nikon
+from pipeline.tether.dispatch import DRIVERS
 from pipeline.tether.ptp import DeviceInfo
 
 __all__ = [
@@ -56,7 +58,6 @@ class CanonLiveViewOC(IntEnum):
     GetViewFinderData = 0x9153
 
 
-_DRIVERS = {"canon": CanonEOS, "nikon": Nikon}
 _MAKERS = {"canon": "canon", "nikon": "nikon"}  # manufacturer substring -> vendor
 _CANON_REMOTE = (CanonOC.SetRemoteMode, CanonOC.SetEventMode, CanonOC.GetEvent)
 _CANON_RELEASE = (CanonOC.RemoteReleaseOn, CanonOC.RemoteReleaseOff)
@@ -89,9 +90,10 @@ class BodyCapability:
         Whether the focal-stack flow / the focus-sweep flow (bulb exposure
         while driving the focus) can run.
     stack_missing, sweep_missing : tuple of int
-        Operations the flow needs that GetDeviceInfo does not list.
+        Operations the flow needs that GetDeviceInfo does not list (empty for a
+        sweep the driver refuses whatever the body lists, e.g. on Nikon).
     stack_reason, sweep_reason : str
-        Empty when accepted; else one line saying why (category, then what is missing).
+        Empty when accepted; else one line saying why (category, then details).
     """
 
     model: str
@@ -108,6 +110,15 @@ class BodyCapability:
         """The short reason of the first refusal (for tables); ``"accepted"`` if none."""
         reason = self.stack_reason or self.sweep_reason
         return reason.split(" (", 1)[0] if reason else "accepted"
+
+    def refusal(self, *, sweep: bool = False) -> str:
+        """One line for a refused flow, naming the body and why; ``""`` if accepted."""
+        if sweep and not self.sweep:
+            instead = "; capture a focal stack (tether stack) instead" if self.stack else ""
+            return f"{self.model} cannot run a focus sweep: {self.sweep_reason}{instead}"
+        if not self.stack:
+            return f"{self.model} cannot capture a focal stack: {self.stack_reason}"
+        return ""
 
 
 def _names(codes, vendor: str | None) -> str:
@@ -136,25 +147,28 @@ def _why(vendor: str, ops: frozenset[int], missing: tuple[int, ...]) -> str:
             return f"no live view / MfDrive in GetDeviceInfo {lacks}"
         if NikonOC.InitiateCaptureRecInSdram in missing:
             return f"no capture into SDRAM {lacks}"
-        if missing == (NikonOC.TerminateCapture,):
-            return f"no TerminateCapture: cannot end a bulb exposure over USB {lacks}"
     return f"missing operations {lacks}"
 
 
-def body_capability(info: DeviceInfo) -> BodyCapability:
+def body_capability(info: DeviceInfo, extra_operations=()) -> BodyCapability:
     """Decide from GetDeviceInfo whether the stack and sweep flows can run on a body.
 
     Parameters
     ----------
     info : DeviceInfo
         As returned by ``PtpSession.open()`` (or built by :func:`device_info_from_listing`).
+    extra_operations : iterable of int
+        Operations the body performs although GetDeviceInfo hides them
+        (``PtpSession.extra_operations``, from ``connect(known_operations=...)``).
 
     Returns
     -------
     BodyCapability
-        ``stack`` needs every operation of the vendor driver's ``stack_ops``;
-        ``sweep`` needs ``bulb_ops`` too (Nikon: TerminateCapture to end the
-        bulb exposure). A body of another vendor is refused for both.
+        ``stack`` needs every operation of the vendor driver's stack flow,
+        ``sweep`` those of its sweep flow (:meth:`FocusCamera.missing_operations
+        <pipeline.tether.base.FocusCamera.missing_operations>`), and a driver
+        without a sweep path (:attr:`~pipeline.tether.base.FocusCamera.sweep_refusal`:
+        Nikon) refuses every sweep. A body of another vendor is refused for both.
 
     Notes
     -----
@@ -164,20 +178,23 @@ def body_capability(info: DeviceInfo) -> BodyCapability:
     """
     vendor = vendor_of(info)
     model = info.model or info.manufacturer or "camera"
-    driver = _DRIVERS.get(vendor)
+    driver = DRIVERS.get(vendor)
     if driver is None:
         reason = (f"not a Canon EOS or Nikon body (vendor extension "
                   f"0x{info.vendor_extension_id:x}, manufacturer {info.manufacturer!r})")
         return BodyCapability(model, vendor, False, False, (), (), reason, reason)
-    ops = frozenset(info.operations)
-    stack_missing = tuple(op for op in driver.stack_ops if op not in ops)
-    sweep_missing = tuple(op for op in dict.fromkeys((*driver.stack_ops, *driver.bulb_ops))
-                          if op not in ops)
-    return BodyCapability(
-        model, vendor, not stack_missing, not sweep_missing, stack_missing, sweep_missing,
-        _why(vendor, ops, stack_missing) if stack_missing else "",
-        _why(vendor, ops, sweep_missing) if sweep_missing else "",
-    )
+    ops = frozenset(info.operations) | frozenset(extra_operations)
+    stack_missing = driver.missing_operations(ops.__contains__)
+    stack_reason = _why(vendor, ops, stack_missing) if stack_missing else ""
+    if stack_missing:  # the sweep flow needs the stack's operations first
+        sweep_missing, sweep_reason = stack_missing, stack_reason
+    elif driver.sweep_refusal:
+        sweep_missing, sweep_reason = (), driver.sweep_refusal
+    else:
+        sweep_missing = driver.missing_operations(ops.__contains__, bulb=True)
+        sweep_reason = _why(vendor, ops, sweep_missing) if sweep_missing else ""
+    return BodyCapability(model, vendor, not stack_missing, not sweep_reason, stack_missing,
+                          sweep_missing, stack_reason, sweep_reason)
 
 
 # --- data adapter: gphoto2 listings -> DeviceInfo -------------------------------------------

@@ -155,9 +155,19 @@ class CanonDPC(IntEnum):
     """Canon EOS device properties (PTP_DPC_CANON_EOS_*)."""
 
     FocusMode = 0xD108
+    Owner = 0xD115  # string
     CaptureDestination = 0xD11C
+    SerialNumber = 0xD1AF  # string
     EVFOutputDevice = 0xD1B0
     EVFMode = 0xD1B1
+    Artist = 0xD1D0  # string
+    Copyright = 0xD1D1  # string
+    LensName = 0xD1D8  # string
+
+
+# Canon EOS properties whose values are NUL-terminated ASCII strings (libgphoto2 ``ptp.c``)
+CANON_STRING_PROPERTIES = frozenset({CanonDPC.Owner, CanonDPC.SerialNumber, CanonDPC.Artist,
+                                     CanonDPC.Copyright, CanonDPC.LensName})
 
 
 class NikonDPC(IntEnum):

@@ -22,9 +22,10 @@ import numpy as np
 
 from pipeline.errors import InputError, TetherError
 from pipeline.tether.base import DriveRefused, FocusCamera
+from pipeline.tether.capabilities import body_capability
 from pipeline.tether.clock import SYSTEM_CLOCK
 from pipeline.tether.dispatch import camera_for
-from pipeline.tether.session import CameraBusy, PtpSession
+from pipeline.tether.session import CameraBusy, PtpSession, UnsupportedCamera
 from pipeline.tether.transport import DeviceGone, UsbTransport, find_cameras, no_camera_message
 
 if TYPE_CHECKING:
@@ -86,6 +87,11 @@ def connect(backend=None, *, drive_size: int = 1, drive_pace_s: float | None = N
             known_operations=()) -> Iterator[FocusCamera]:
     """Open the first camera, check it can do the flow, yield its driver, always clean up.
 
+    A body that :func:`~pipeline.tether.capabilities.body_capability` refuses for
+    the flow (stack, or sweep with ``bulb``) raises :class:`UnsupportedCamera`
+    with one line naming the body and what it lacks, right after the session
+    opens: nothing is started or captured.
+
     Parameters
     ----------
     backend : usb.backend.IBackend, optional
@@ -107,7 +113,11 @@ def connect(backend=None, *, drive_size: int = 1, drive_pace_s: float | None = N
     session = PtpSession(UsbTransport(cameras[0]), clock=clock)
     session.extra_operations |= set(known_operations)
     try:
-        session.open()
+        info = session.open()
+        # the body table's decision on the camera's own GetDeviceInfo, before any capture
+        refusal = body_capability(info, session.extra_operations).refusal(sweep=bulb)
+        if refusal:
+            raise UnsupportedCamera(refusal)
         camera = camera_for(session, drive_size=drive_size, drive_pace_s=drive_pace_s)
         camera.check_supported(bulb=bulb)
         try:

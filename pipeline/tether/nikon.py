@@ -60,6 +60,8 @@ class Nikon(FocusCamera):
         OC.GetPartialObject, OC.DeleteObject,
     )
     refusal_codes = (NikonRC.NotLiveView,)
+    # MfDrive needs live view, which Nikon bodies prohibit in bulb
+    sweep_refusal = "Nikon: sweep not supported (live view is prohibited in bulb; no bulb path)"
 
     def setup(self) -> None:
         if self.drive_size != 1:
@@ -70,21 +72,12 @@ class Nikon(FocusCamera):
         self.live_view = False
         self._lv_stale = False  # a capture may have ended live view
 
-    def check_supported(self, *, bulb: bool = False) -> None:
-        super().check_supported()
-        if bulb:
-            model = self.session.device_info.model if self.session.device_info else "Nikon"
-            raise UnsupportedCamera(
-                f"{model} cannot drive the focus in bulb: Nikon bodies prohibit live view in "
-                "bulb and MfDrive needs live view; capture a focal stack (tether stack) instead"
-            )
-
     def start(self) -> None:
         self.start_live_view()
 
     def open_exposure(self) -> None:
-        raise UnsupportedCamera("Nikon bodies cannot drive the focus in bulb (live view is "
-                                "prohibited there); capture a focal stack (tether stack) instead")
+        raise UnsupportedCamera(f"{self.sweep_refusal}; capture a focal stack (tether stack) "
+                                "instead")
 
     def start_live_view(self) -> None:
         """StartLiveView, then DeviceReady until it is up."""

@@ -51,6 +51,7 @@ import usb.backend
 import usb.core
 
 from pipeline.errors import InputError, TetherError
+from pipeline.tether.clock import VirtualClock
 from pipeline.tether.codes import (
     OC,
     RC,
@@ -681,15 +682,22 @@ class ReplayBackend(usb.backend.IBackend):
     camera : ReplayCamera or Recording or path
         A recording (or the path of a log) is wrapped in a :class:`ReplayCamera`
         with default options.
+    clock : optional
+        The clock a session over this backend should use (``backend.clock``, as
+        :func:`pipeline.tether.flows.connect` looks it up). Default: a
+        :class:`~pipeline.tether.clock.VirtualClock`: a recording answers at once,
+        so the host's retry and pacing waits cost no real time.
 
     Examples
     --------
     >>> backend = ReplayBackend("canon-eos-60d.debug.log")  # doctest: +SKIP
-    >>> session = PtpSession(UsbTransport(usb.core.find(backend=backend)))  # doctest: +SKIP
+    >>> device = usb.core.find(backend=backend)  # doctest: +SKIP
+    >>> session = PtpSession(UsbTransport(device), clock=backend.clock)  # doctest: +SKIP
     """
 
-    def __init__(self, camera) -> None:
+    def __init__(self, camera, *, clock=None) -> None:
         super().__init__()
+        self.clock = VirtualClock() if clock is None else clock
         if isinstance(camera, (str, Path)):
             camera = load_recording(camera)
         if isinstance(camera, Recording):

@@ -456,6 +456,12 @@ class EmulatedCamera:
             self._dumped = True
             self._events += [layouts.eos_prop_value(p, v) for p, v in self.properties.items()]
             self._events += [layouts.eos_prop_value(0xD101, 0x30), layouts.eos_camera_status(0)]
+            # values that are not one u32, as the 60D sends them: Owner (one byte), serial
+            # number (a string), lens name (a 64-byte string field)
+            self._events += [layouts.eos_prop_raw(0xD115, b"\x00"),
+                             layouts.eos_prop_raw(0xD1AF, b"EMU0001\x00"),
+                             layouts.eos_prop_raw(0xD1D8, b"EF50mm f/1.8 (emulated)".ljust(64,
+                                                                                   b"\x00"))]
         return OK, (), None
 
     def _canon_9110(self, *_, data=None):  # SetDevicePropValueEx

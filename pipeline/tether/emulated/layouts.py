@@ -10,7 +10,8 @@ check these tables against bytes recorded from real cameras
 Canon EOS GetEvent records are ``u32 size, u32 type`` and a type-specific body:
 
 =====================  ====================================================================
-PropValueChanged       0x08 property u32, 0x0C value (u32 for the properties used here)
+PropValueChanged       0x08 property u32, 0x0C value: as long as the record (1, 2 or 4
+                       bytes for numbers; strings and arrays up to 100+ bytes)
 CameraStatusChanged    0x08 status u32
 ObjectAddedEx 0xC181   0x08 handle, 0x0C storage, 0x10 format u16, 0x1C size u32,
                        0x20 parent, 0x28 file name (ASCII, NUL)
@@ -53,6 +54,12 @@ def _record(kind: int, size: int, fields: list[tuple[int, str, object]]) -> byte
 def eos_prop_value(prop: int, value: int) -> bytes:
     """PropValueChanged (0xC189) of a u32 property: 16 bytes."""
     return _record(0xC189, 16, [(0x08, "I", prop), (0x0C, "I", value)])
+
+
+def eos_prop_raw(prop: int, value: bytes) -> bytes:
+    """PropValueChanged (0xC189) of any value: 12 + ``len(value)`` bytes (the 60D sends 13-byte
+    records for one-byte values, 22-23 for its serial number string, 76 for the lens name)."""
+    return struct.pack("<III", 12 + len(value), 0xC189, prop) + bytes(value)
 
 
 def eos_camera_status(status: int) -> bytes:
