@@ -98,7 +98,7 @@ def process_sweep_image(
     progress: Progress = _no_progress,
 ) -> StackResult:
     """Deconvolve one sweep capture; writes ``output`` and ``output.json``."""
-    check_output(output)
+    check_output(output, options.save_kernel)
     start = time.perf_counter()
     progress("kernel", 0, 1)
     kernel, samples, summary = kernel_info or sweep_kernel(lens, profile)

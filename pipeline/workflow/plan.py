@@ -236,6 +236,7 @@ def fingerprint(stack: PlannedStack, file_sha256: Callable[[Path], str]) -> str:
             pass  # the task reports it as the stack's error; the name is in the options
     options = dataclasses.asdict(stack.options)
     options.pop("save_kernel")
+    options.pop("max_pixels")  # a safety limit: it never changes an output
     contents = sorted(
         (_display(f, stack.base.resolve()), file_sha256(f)) for f in files if f.is_file()
     )
