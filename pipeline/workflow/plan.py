@@ -33,6 +33,10 @@ class PlannedStack:
     base: Path  # the stack's folder (file names in the fingerprint are relative to it)
 
 
+class NoInputsYet(InputError):
+    """An input glob matches nothing (yet): for a scheduled workflow, nothing to do."""
+
+
 # ---------------------------------------------------------------------- planning
 def safe_name(text: str) -> str:
     """A file-name component from input names: no separators, no leading dots."""
@@ -67,23 +71,43 @@ def _display(path: Path, base: Path) -> str:
         return path.resolve().as_posix()
 
 
-def _visible_files(directory: Path) -> list[Path]:
+def _visible_files(directory: Path, outputs: Path | None = None) -> list[Path]:
     return sorted(
-        (p for p in directory.iterdir() if p.is_file() and not p.name.startswith(".")),
+        (
+            p
+            for p in directory.iterdir()
+            if p.is_file()
+            and not p.name.startswith(".")
+            and (outputs is None or not _inside(p, outputs))
+        ),
         key=natural_key,
     )
 
 
-def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
+def _inside(path: Path, folder: Path) -> bool:
+    return path.resolve().is_relative_to(folder)
+
+
+def plan_stacks(
+    workflow: Workflow, *, empty_ok: bool = False, on_empty: Callable[[str], None] | None = None
+) -> list[PlannedStack]:
     """Expand the inputs into stacks, with their outputs and options.
+
+    Everything inside the output directory (the workflow's own results, the
+    ledger) is left out of the inputs, so an output folder under an input glob
+    is never processed as a stack. With ``empty_ok`` (scheduled runs), an input
+    that matches nothing yet is reported to ``on_empty`` and skipped.
 
     Raises
     ------
+    NoInputsYet
+        An input glob that matches nothing (without ``empty_ok``).
     InputError
-        An input glob that matches nothing, files that do not fit ``group_by``,
-        and two stacks that would write the same output.
+        Files that do not fit ``group_by``, and two stacks that would write the
+        same output.
     """
     base = workflow.path.parent
+    outputs = workflow.output_dir.resolve()
     planned: list[PlannedStack] = []
     for index, spec in enumerate(workflow.inputs):
         where = f"{workflow.path}: [[inputs]] #{index + 1}"
@@ -100,13 +124,23 @@ def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
         if spec.directories is not None:
             pattern = str(base / spec.directories)
             found = sorted(
-                (Path(p) for p in glob.glob(pattern) if Path(p).is_dir()), key=natural_key
+                (
+                    Path(p)
+                    for p in glob.glob(pattern)
+                    if Path(p).is_dir() and not _inside(Path(p), outputs)
+                ),
+                key=natural_key,
             )
             if not found:
-                raise InputError(
+                message = (
                     f"{where}: directories = {spec.directories!r} matches no "
                     f"directory (looked for {pattern})"
                 )
+                if not empty_ok:
+                    raise NoInputsYet(message)
+                if on_empty is not None:
+                    on_empty(message)
+                continue
             for directory in found:
                 if spec.frames is not None:
                     paths = (str(directory / spec.frames),)
@@ -117,7 +151,7 @@ def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
                         )
                     )
                 else:
-                    paths, watch = (str(directory),), tuple(_visible_files(directory))
+                    paths, watch = (str(directory),), tuple(_visible_files(directory, outputs))
                 planned.append(
                     PlannedStack(
                         _display(directory, base),
@@ -134,20 +168,28 @@ def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
                     )
                 )
         else:
-            planned.extend(_plan_file_groups(workflow, spec, options, where))
+            try:
+                planned.extend(_plan_file_groups(workflow, spec, options, where, outputs))
+            except NoInputsYet as err:
+                if not empty_ok:
+                    raise
+                if on_empty is not None:
+                    on_empty(str(err))
     _check_unique(workflow, planned)
     return planned
 
 
 def _plan_file_groups(
-    workflow: Workflow, spec: InputSpec, options: StackOptions, where: str
+    workflow: Workflow, spec: InputSpec, options: StackOptions, where: str, outputs: Path
 ) -> list[PlannedStack]:
     base = workflow.path.parent
     pattern = str(base / spec.files)
     files = [Path(p) for p in glob.glob(pattern, recursive=True) if Path(p).is_file()]
-    files = [p for p in files if p.suffix.lower() in IMAGE_EXTENSIONS]
+    files = [
+        p for p in files if p.suffix.lower() in IMAGE_EXTENSIONS and not _inside(p, outputs)
+    ]
     if not files:
-        raise InputError(
+        raise NoInputsYet(
             f"{where}: files = {spec.files!r} matches no image files (looked for {pattern})"
         )
     groups: dict[tuple[Path, str], list[Path]] = {}
