@@ -10,6 +10,7 @@ import logging
 import os
 import shutil
 import signal
+import socket
 import struct
 import subprocess
 import sys
@@ -362,3 +363,42 @@ def test_sidecar_records_only_frames(frames_only):
     process_stack(frames_only, out, StackOptions(blur_span_px=10.0))
     data = json.loads((frames_only / "x.png.json").read_text())
     assert all(Path(p).name in FRAMES for p in data["inputs"])
+
+
+def test_float_frames_of_1e38_are_restored_not_non_finite(sample):
+    import tifffile
+
+    toml = sample / "stack.toml"
+    toml.write_text(toml.read_text().replace(".png", ".tif"))
+    for name in FRAMES:
+        frame = read_frame(sample / name) * np.float32(1e38)
+        tifffile.imwrite(
+            sample / name.replace(".png", ".tif"), frame.astype(np.float32), photometric="rgb"
+        )
+        (sample / name).unlink()
+    for method in ("wiener", "rl"):
+        result = process_stack(sample, sample / "out.tif", StackOptions(method=method))
+        assert np.all(np.isfinite(result.image)) and result.image.max() > 1e37
+
+
+def test_non_finite_restoration_names_the_frames():
+    from pipeline.jobs.result import restore_image
+
+    image = np.ones((32, 32), np.float32)
+    image[3, 4] = np.inf
+    with pytest.raises(InputError, match=r"^stack/ \(8 frames\): the average .* 1 non-finite"):
+        restore_image(image, np.ones((3, 3)) / 9, StackOptions(), source="stack/ (8 frames)")
+
+
+@pytest.mark.timeout(30)
+def test_stack_scheduler_on_a_closed_port_fails_at_once():
+    from pipeline.parallel.scheduler import SchedulerError, scheduler_context
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    with pytest.raises(SchedulerError, match="nothing listens on port"):
+        with scheduler_context(f"tcp://127.0.0.1:{port}"):
+            pass
+    assert time.monotonic() - t0 < 5  # was 10 s

@@ -48,21 +48,48 @@ def check_not_input(output: Path, inputs, save_kernel: Path | None = None) -> No
             )
 
 
+RESCALE_ABOVE = 1e4  # linear light has white at 1: far larger values are rescaled first
+
+
 def restore_image(
-    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None
+    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None, source=None
 ) -> np.ndarray:
     """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
 
     ``kernel_samples`` (the blur at several depths) can make Wiener robust to the
-    residual depth dependence of the IPSF (see :func:`wiener_options`).
+    residual depth dependence of the IPSF (see :func:`wiener_options`). Images whose
+    values exceed ``RESCALE_ABOVE`` (float frames in other units) are deconvolved
+    divided by their peak and scaled back, so float32 sums cannot overflow.
+    ``source`` (the frames, for messages) names the input in errors.
     """
     clipped = clipped_pixels(image) if clipped is None else clipped
     extra = wiener_options(kernel, kernel_samples) if options.method == "wiener" else {}
+    finite = np.isfinite(image)
+    if not np.all(finite):
+        raise InputError(
+            f"{source or 'the image'}: the average of the frames holds "
+            f"{int(np.count_nonzero(~finite))} non-finite values; check the frames' values"
+        )
+    peak = float(np.max(np.abs(image))) if np.size(image) else 0.0
+    scale = peak if peak > RESCALE_ABOVE else 1.0
+    data = image if scale == 1.0 else (np.asarray(image, np.float64) / scale).astype(image.dtype)
     result = deconvolve_tiled(  # clipped in any frame: at least the observed value
-        image, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra
+        data, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra
     )
+    if scale != 1.0:
+        with np.errstate(over="ignore"):
+            result = (np.asarray(result, np.float64) * scale).astype(result.dtype)
     if not np.all(np.isfinite(result)):
-        raise InputError("deconvolution produced non-finite values; try --method rl")
+        where = source or "the image"
+        if scale != 1.0:
+            raise InputError(
+                f"{where}: the frames' values reach {peak:.3g} and the restored image "
+                f"overflows {result.dtype}; scale the frames (linear light has white at 1)"
+            )
+        raise InputError(
+            f"{where}: deconvolution ({options.method}) produced non-finite values; "
+            "check the frames and --blur-span-px"
+        )
     return result
 
 

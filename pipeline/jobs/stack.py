@@ -111,9 +111,19 @@ def _sidecar_positions(stack: Stack, lens: Lens | None) -> tuple[np.ndarray | No
 def read_previews(
     files: Sequence[Path], max_side_px: int, progress: Progress = _no_progress
 ) -> list[np.ndarray]:
-    """Reduced grey copies of every frame, decoded in parallel (one cheap decode each)."""
+    """Reduced grey copies of every frame, decoded in parallel (one cheap decode each).
+
+    Float frames far brighter than white (values above 1e4) are divided by their common
+    peak, so alignment statistics cannot overflow float32.
+    """
     with _TaskProgress("read_preview", lambda done: progress("preview", done, len(files))):
-        return list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
+        previews = list(
+            dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files])
+        )
+    peak = max((float(np.max(np.abs(p))) for p in previews if p.size), default=0.0)
+    if peak > 1e4:
+        previews = [(p.astype(np.float64) / peak).astype(np.float32) for p in previews]
+    return previews
 
 
 def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
@@ -365,13 +375,27 @@ def process_stack(
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    result = restore_image(average, kernel, options, clipped=clipped, kernel_samples=kernel_samples)
+    result = restore_image(
+        average,
+        kernel,
+        options,
+        clipped=clipped,
+        kernel_samples=kernel_samples,
+        source=_describe_frames(stack),
+    )
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
+
+
+def _describe_frames(stack: Stack) -> str:
+    files = stack.files
+    if len(files) == 1:
+        return str(files[0])
+    return f"{stack.base_dir} ({len(files)} frames, {files[0].name} .. {files[-1].name})"
 
 
 def _align(stack, options, positions, absolute, previews, shape):

@@ -109,7 +109,7 @@ def process_sweep_image(
     timings["read"] = time.perf_counter() - t0
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    result = restore_image(image, kernel, options, kernel_samples=samples)
+    result = restore_image(image, kernel, options, kernel_samples=samples, source=str(path))
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     sidecar = {
