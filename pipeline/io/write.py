@@ -57,7 +57,8 @@ _TEMP_RE = re.compile(r"\.flexdof-(?P<host>[A-Za-z0-9]*)-(?P<pid>\d+)\.[^.]*\.tm
 _NAME_IN_TEMP = 100  # characters of the target's name kept in its temporary's name
 
 
-def _temp_prefix(path: Path) -> str:
+def temp_prefix(path: Path) -> str:
+    """How the names of ``path``'s temporaries begin."""
     return f".{path.name[:_NAME_IN_TEMP]}."
 
 
@@ -81,7 +82,7 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
     p = Path(path)
     removed = []
     try:
-        candidates = list(p.parent.glob(glob.escape(_temp_prefix(p)) + "flexdof-*.tmp"))
+        candidates = list(p.parent.glob(glob.escape(temp_prefix(p)) + "flexdof-*.tmp"))
     except OSError:
         return removed
     for temp in candidates:
@@ -100,7 +101,7 @@ def remove_stale_temps(path: str | Path) -> list[Path]:
 
 def _new_temp(path: Path) -> tuple[int, Path]:
     """An open temporary file beside ``path``, registered for cleanup on SIGTERM."""
-    prefix = _temp_prefix(path) + _TEMP_TAG.format(host=_HOST, pid=os.getpid()) + "."
+    prefix = temp_prefix(path) + _TEMP_TAG.format(host=_HOST, pid=os.getpid()) + "."
     try:
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=".tmp")
     except OSError as err:

@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.errors import FlexdofError, InputError
+from pipeline.io.write import temp_prefix
 from pipeline.jobs.batch import BatchJob, OnProgress, run_batch
 from pipeline.parallel.scheduler import check_scheduler
 from pipeline.workflow.ledger import Ledger, RunLock
@@ -75,9 +76,9 @@ def _needs_run(
 
 def _remove_stale_temps(output: Path) -> None:
     """Temp files of atomic writes a killed run left behind (never complete outputs)."""
-    for name in (output.name, output.name + ".json"):
-        for temp in output.parent.glob(f".{glob.escape(name)}.*.tmp"):
-            temp.unlink(missing_ok=True)
+    for target in (output, output.with_name(output.name + ".json")):
+        for temp in output.parent.glob(glob.escape(temp_prefix(target)) + "*.tmp"):
+            temp.unlink(missing_ok=True)  # the run lock proves no other run writes here
 
 
 def run_workflow(
