@@ -402,3 +402,15 @@ def test_stack_scheduler_on_a_closed_port_fails_at_once():
         with scheduler_context(f"tcp://127.0.0.1:{port}"):
             pass
     assert time.monotonic() - t0 < 5  # was 10 s
+
+
+@pytest.mark.timeout(60)
+def test_a_sweep_blurring_beyond_the_frame_is_refused_before_its_kernel(sample):
+    (sample / "stack.toml").write_text(
+        'lens = "lens.toml"\nkind = "sweep"\n[sweep]\nfile = "frame_00.png"\n'
+        "start_image_distance_mm = 12.5\nend_image_distance_mm = 1250.0\nexposure_s = 1.0\n"
+    )
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"frame_00.png: the sweep .* more than the image's diag"):
+        process_stack(sample, sample / "out.tif")
+    assert time.monotonic() - t0 < 10
