@@ -260,3 +260,18 @@ def test_a_scheduler_killed_mid_run_is_one_error_and_the_stacks_are_redone(tmp_p
 def test_scheduler_address_without_port_is_an_input_error():
     with pytest.raises(InputError, match="give the port"):
         check_scheduler("tcp://127.0.0.1")
+
+
+def test_an_interrupted_run_does_not_leave_the_ledger_running(tmp_path):
+    flow = workflow_file(make_tree(tmp_path, 3))
+
+    def interrupt(result):  # Ctrl-C, or SIGTERM with install_signal_cleanup
+        raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_workflow(load_workflow(flow), on_result=interrupt)
+    out = tmp_path / "out"
+    assert ledger(out, "SELECT status FROM runs") == [("interrupted",)]
+    assert ledger(out, "SELECT * FROM stacks WHERE status IN ('queued', 'running')") == []
+    again = run_workflow(load_workflow(flow))
+    assert again.ok and len(again.done) >= 2
