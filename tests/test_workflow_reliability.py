@@ -275,3 +275,34 @@ def test_an_interrupted_run_does_not_leave_the_ledger_running(tmp_path):
     assert ledger(out, "SELECT * FROM stacks WHERE status IN ('queued', 'running')") == []
     again = run_workflow(load_workflow(flow))
     assert again.ok and len(again.done) >= 2
+
+
+def test_an_output_folder_above_the_inputs_excludes_nothing(tmp_path):
+    make_tree(tmp_path, 2)
+    flow = workflow_file(tmp_path, out=".")
+    assert sorted(plan_of(flow)) == ["stacks/s0", "stacks/s1"]
+    assert sorted(run_workflow(load_workflow(flow)).done) == ["stacks/s0", "stacks/s1"]
+    assert plan_of(flow) == {}
+
+
+FILES_WORKFLOW = """
+[[inputs]]
+files = "*.png"
+group_by = '^(?P<stack>[a-z]+)_\\d+\\.png$'
+[options]
+blur_span_px = 5.0
+[output]
+directory = "."
+name = "{stack}_edof.png"
+"""
+
+
+def test_file_groups_never_take_the_workflows_own_outputs(tmp_path):
+    stack = make_synthetic_stack(tmp_path / "tmp", seed=1, frames=3, shape=(48, 64))
+    for i, frame in enumerate(sorted(stack.iterdir())):
+        frame.rename(tmp_path / f"abc_{i}.png")
+    flow = tmp_path / "flow.toml"
+    flow.write_text(FILES_WORKFLOW)
+    assert run_workflow(load_workflow(flow)).done == [".#abc"]
+    assert (tmp_path / "abc_edof.png.json").is_file()
+    assert plan_of(flow) == {}  # abc_edof.png is not a frame of a new stack "abc_edof"

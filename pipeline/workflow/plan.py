@@ -16,7 +16,7 @@ from pipeline import __version__
 from pipeline.errors import InputError
 from pipeline.io.probe import IMAGE_EXTENSIONS
 from pipeline.io.profiles import resolve_lens_path
-from pipeline.io.stackfile import load_stack, natural_key
+from pipeline.io.stackfile import is_flexdof_result, load_stack, natural_key
 from pipeline.jobs.options import StackOptions
 from pipeline.workflow.schema import InputSpec, Workflow
 
@@ -84,8 +84,20 @@ def _visible_files(directory: Path, outputs: Path | None = None) -> list[Path]:
     )
 
 
-def _inside(path: Path, folder: Path) -> bool:
-    return path.resolve().is_relative_to(folder)
+def _inside(path: Path, folder: Path | None) -> bool:
+    return folder is not None and path.resolve().is_relative_to(folder)
+
+
+def _excluded_outputs(pattern: str, outputs: Path) -> Path | None:
+    """The output directory when it lies below the glob's fixed part (so the glob can reach
+    into it), else None (an output directory at or above the inputs excludes nothing)."""
+    fixed = []
+    for part in Path(pattern).parts:
+        if any(ch in part for ch in "*?["):
+            break
+        fixed.append(part)
+    root = Path(*fixed).resolve() if fixed else Path.cwd()
+    return outputs if outputs != root and outputs.is_relative_to(root) else None
 
 
 def plan_stacks(
@@ -123,11 +135,12 @@ def plan_stacks(
         )
         if spec.directories is not None:
             pattern = str(base / spec.directories)
+            excluded = _excluded_outputs(pattern, outputs)
             found = sorted(
                 (
                     Path(p)
                     for p in glob.glob(pattern)
-                    if Path(p).is_dir() and not _inside(Path(p), outputs)
+                    if Path(p).is_dir() and not _inside(Path(p), excluded)
                 ),
                 key=natural_key,
             )
@@ -151,7 +164,7 @@ def plan_stacks(
                         )
                     )
                 else:
-                    paths, watch = (str(directory),), tuple(_visible_files(directory, outputs))
+                    paths, watch = (str(directory),), tuple(_visible_files(directory, excluded))
                 planned.append(
                     PlannedStack(
                         _display(directory, base),
@@ -185,8 +198,13 @@ def _plan_file_groups(
     base = workflow.path.parent
     pattern = str(base / spec.files)
     files = [Path(p) for p in glob.glob(pattern, recursive=True) if Path(p).is_file()]
+    excluded = _excluded_outputs(pattern, outputs)
     files = [
-        p for p in files if p.suffix.lower() in IMAGE_EXTENSIONS and not _inside(p, outputs)
+        p
+        for p in files
+        if p.suffix.lower() in IMAGE_EXTENSIONS
+        and not _inside(p, excluded)
+        and not is_flexdof_result(p)  # outputs written beside the inputs
     ]
     if not files:
         raise NoInputsYet(
