@@ -414,3 +414,16 @@ def test_a_sweep_blurring_beyond_the_frame_is_refused_before_its_kernel(sample):
     with pytest.raises(InputError, match=r"frame_00.png: the sweep .* more than the image's diag"):
         process_stack(sample, sample / "out.tif")
     assert time.monotonic() - t0 < 10
+
+
+def test_frames_named_like_results_are_kept_when_they_are_the_frames(tmp_path):
+    folder = tmp_path / "extracted"
+    folder.mkdir()
+    for i in range(3):  # what a video-frame extractor writes
+        shutil.copy(SAMPLE / FRAMES[i], folder / f"output_{i + 1:04d}.png")
+    assert len(load_stack(folder)) == 3
+    for name in ("result.png", "stacked.png"):  # two result-like names, two other frames
+        shutil.copy(SAMPLE / FRAMES[0], tmp_path / name)
+    for name in FRAMES[:2]:
+        shutil.copy(SAMPLE / name, tmp_path / name)
+    assert len(load_stack(tmp_path)) == 4  # not a minority: kept

@@ -158,7 +158,7 @@ def natural_key(path: str | Path) -> list:
 
 # File names of finished results rather than frames (another tool's output, a reference).
 _RESULT_NAME_RE = re.compile(
-    r"^(expected|result|results|output|out|stacked|edof|ground[_-]?truth|reference)([_.-]|$)"
+    r"^(expected|result|results|output|stacked|edof|ground[_-]?truth|reference)([_.-]|$)"
     r"|_edof([_.-]|$)|[_-](stacked|result|expected)$",
     re.IGNORECASE,
 )
@@ -177,20 +177,25 @@ def is_flexdof_result(path: Path) -> bool:
 
 
 def looks_like_result(path: Path) -> bool:
-    """True for names such as ``expected.jpg``, ``result.png``, ``pcb_edof.tif``."""
-    return bool(_RESULT_NAME_RE.search(Path(path).stem))
+    """True for names such as ``expected.jpg``, ``result.png``, ``pcb_edof.tif``; a numbered
+    name (``output_0001.png``, as video-frame extractors write) is a frame."""
+    stem = Path(path).stem
+    return bool(_RESULT_NAME_RE.search(stem)) and not re.search(r"\d$", stem)
 
 
 def _drop_results(files: list[Path], where: str) -> list[Path]:
     """Leave out flexdof's own outputs and files named like another tool's result (logged)."""
     kept = []
+    named = [file for file in files if looks_like_result(file)]
+    if len(files) - len(named) < max(2, len(named) + 1):
+        named = []  # most files are named so: they are the frames
     for file in files:
         if is_flexdof_result(file):
             log.warning(
                 "%s: skipping %s: it is a flexdof result (it has %s.json), not a frame",
                 where, file.name, file.name,
             )
-        elif looks_like_result(file):
+        elif file in named:
             log.warning(
                 "%s: skipping %s: its name looks like a finished result, not a frame; "
                 "name the file on the command line, or list it in stack.toml, to use it",
