@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pipeline.errors import FlexdofError
 from pipeline.io.read import read_frame
 from pipeline.io.write import write_image
 from pipeline.jobs.batch import BatchJob, run_batch
@@ -265,6 +266,6 @@ def test_unreachable_scheduler(tmp_path):
 
     with (
         dask.config.set({"distributed.comm.timeouts.connect": "1s"}),
-        pytest.raises(ValueError, match="cannot connect"),
+        pytest.raises(FlexdofError, match="nothing listens on port 9"),
     ):
         run_batch([BatchJob("x", ("x",), str(tmp_path / "x.tif"))], scheduler="tcp://127.0.0.1:9")

@@ -28,8 +28,12 @@ write is atomic: a temporary file in the target directory, then ``os.replace``.
 from __future__ import annotations
 
 import functools
+import os
 import re
 import struct
+import sys
+import tempfile
+import threading
 from pathlib import Path
 
 import cv2
@@ -138,7 +142,7 @@ def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
         }[factor]
         data = p.read_bytes()
         _jpeg_structure(data, p)
-        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+        decoded = _imdecode_jpeg(data, flags, p)
         if decoded is None:
             raise InputError(f"{p}: OpenCV cannot decode it (corrupt JPEG data)")
         image = _decode_codes(_to_rgb(decoded, p, bgr=True), "srgb", p)
@@ -150,6 +154,38 @@ def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
     if grey.shape[::-1] != size:
         grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(grey, dtype=np.float32)
+
+
+# libjpeg reports corrupt entropy-coded data only as a warning on stderr (OpenCV then
+# returns an image with garbage blocks): decoding runs with fd 2 captured, one JPEG at a
+# time per process, and such a warning becomes an error naming the file.
+_STDERR_LOCK = threading.Lock()
+_JPEG_FATAL = ("Corrupt JPEG data", "Premature end of JPEG", "Bogus", "Invalid JPEG")
+
+
+def _imdecode_jpeg(data: bytes, flags: int, path: Path):
+    with _STDERR_LOCK:
+        sys.stderr.flush()
+        saved = os.dup(2)
+        with tempfile.TemporaryFile() as capture:
+            os.dup2(capture.fileno(), 2)
+            try:
+                image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
+            finally:
+                os.dup2(saved, 2)
+                os.close(saved)
+            capture.seek(0)
+            text = capture.read().decode("utf-8", errors="replace")
+    lines = [line.strip() for line in text.splitlines() if line.strip()]
+    fatal = [line for line in lines if line.startswith(_JPEG_FATAL)]
+    if fatal:
+        raise InputError(
+            f"{path}: corrupt JPEG data (libjpeg: {fatal[0]}); the decoded image would hold "
+            "garbage blocks: re-copy or re-export the file"
+        )
+    for line in lines:  # other output of those moments (another thread's log, say): pass it on
+        print(line, file=sys.stderr)
+    return image
 
 
 def _read_raw(path: Path) -> np.ndarray:
@@ -215,7 +251,10 @@ def _read_codec(path: Path, kind: str, transfer: str) -> np.ndarray:
     else:
         _png_structure(data, path)
     try:
-        image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        if kind == "jpeg":
+            image = _imdecode_jpeg(data, cv2.IMREAD_UNCHANGED, path)
+        else:
+            image = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as err:
         raise InputError(f"{path}: OpenCV cannot decode it: {err}") from err
     if image is None:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import json
 import logging
 import math
 import re
@@ -37,6 +38,7 @@ from pipeline.io.read import read_frame
 log = logging.getLogger(__name__)
 
 SIDECAR = "stack.toml"
+MAX_IMAGE_DISTANCE_F = 100  # v <= 100 f: magnification 99x, beyond any bellows or macro lens
 KINDS = ("focal-stack", "sweep")
 POSITION_KEYS = ("focus_distance_mm", "image_distance_mm", "focus_step")
 SWEEP_PROFILES = ("constant-speed",)
@@ -154,10 +156,64 @@ def natural_key(path: str | Path) -> list:
     return [(0, int(part), "") if part.isdigit() else (1, 0, part.lower()) for part in parts]
 
 
+# File names of finished results rather than frames (another tool's output, a reference).
+_RESULT_NAME_RE = re.compile(
+    r"^(expected|result|results|output|stacked|edof|ground[_-]?truth|reference)([_.-]|$)"
+    r"|_edof([_.-]|$)|[_-](stacked|result|expected)$",
+    re.IGNORECASE,
+)
+
+
+def is_flexdof_result(path: Path) -> bool:
+    """True when ``path`` has a flexdof result sidecar beside it (``path.json`` with inputs)."""
+    sidecar = path.with_name(path.name + ".json")
+    if not sidecar.is_file():
+        return False
+    try:
+        data = json.loads(sidecar.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(data, dict) and "inputs" in data and "version" in data
+
+
+def looks_like_result(path: Path) -> bool:
+    """True for names such as ``expected.jpg``, ``result.png``, ``pcb_edof.tif``; a numbered
+    name (``output_0001.png``, as video-frame extractors write) is a frame."""
+    stem = Path(path).stem
+    return bool(_RESULT_NAME_RE.search(stem)) and not re.search(r"\d$", stem)
+
+
+def _drop_results(files: list[Path], where: str) -> list[Path]:
+    """Leave out flexdof's own outputs and files named like another tool's result (logged)."""
+    kept = []
+    named = [file for file in files if looks_like_result(file)]
+    if len(files) - len(named) < max(2, len(named) + 1):
+        named = []  # most files are named so: they are the frames
+    for file in files:
+        if is_flexdof_result(file):
+            log.warning(
+                "%s: skipping %s: it is a flexdof result (it has %s.json), not a frame",
+                where, file.name, file.name,
+            )
+        elif file in named:
+            log.warning(
+                "%s: skipping %s: its name looks like a finished result, not a frame; "
+                "name the file on the command line, or list it in stack.toml, to use it",
+                where, file.name,
+            )
+        else:
+            kept.append(file)
+    return kept
+
+
 def _images_in(directory: Path) -> list[Path]:
-    files = [p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS]
+    found = [p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS]
+    files = _drop_results(found, str(directory))
     if not files:
-        raise InputError(f"no image files in {directory}; supported: {supported_extensions()}")
+        skipped = f" (skipped {len(found)} result file(s))" if found else ""
+        raise InputError(
+            f"no image files in {directory}{skipped}; supported: {supported_extensions()}"
+        )
     return sorted(files, key=natural_key)
 
 
@@ -167,6 +223,7 @@ def _expand(entry: str | Path) -> list[Path]:
     if any(ch in text for ch in "*?["):
         matches = [Path(m) for m in glob.glob(text) if Path(m).is_file()]
         images = [p for p in matches if p.suffix.lower() in IMAGE_EXTENSIONS]
+        images = _drop_results(images, text)
         if not images:
             raise InputError(
                 f"{text}: the pattern matches no image files; supported: {supported_extensions()}"
@@ -200,9 +257,12 @@ def load_stack(paths: str | Path | Sequence[str | Path]) -> Stack:
     ----------
     paths : path or sequence of paths
         One directory (its ``stack.toml`` if present, else every image file in
-        it: a reference image such as ``expected.jpg`` must be excluded by
-        passing files or a glob instead), one ``stack.toml``, or image files
-        and glob patterns (kept in natural file-name order).
+        it), one ``stack.toml``, or image files and glob patterns (kept in
+        natural file-name order). Directories and globs leave out flexdof's own
+        results (an image with a result sidecar ``NAME.json`` beside it) and
+        files named like another tool's result (``expected.jpg``,
+        ``result.png``, ``*_edof.tif``, ``stacked.tif``, ...), with a warning;
+        name such a file explicitly to use it as a frame.
 
     Raises
     ------
@@ -435,6 +495,13 @@ def _check_against_lens(toml: Path, stack: Stack, lens: Lens) -> None:
             raise InputError(
                 f"{toml}: {key} = {value} of {name} is less than the focal length {f} mm of "
                 f"lens {stack.lens!r}; the image distance of a real image is >= f"
+            )
+        if "image_distance" in key and value > MAX_IMAGE_DISTANCE_F * f:
+            raise InputError(
+                f"{toml}: {key} = {value} of {name} is {value / f:.3g} times the focal length "
+                f"{f} mm of lens {stack.lens!r} (a magnification of {value / f - 1:.3g}x); the "
+                f"image distance is the lens-to-detector distance in mm, at most "
+                f"{MAX_IMAGE_DISTANCE_F} f"
             )
 
 

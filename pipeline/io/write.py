@@ -4,11 +4,19 @@ TIFF, float32 TIFF, 8-bit PNG/JPEG) and JSON sidecars.
 
 from __future__ import annotations
 
+import atexit
+import contextlib
+import errno
+import glob
 import io
 import json
 import logging
 import os
+import re
+import signal
+import socket
 import tempfile
+import threading
 from pathlib import Path
 
 import cv2
@@ -41,24 +49,197 @@ _UMASK = os.umask(0)  # the process umask, read once (setting it is the only way
 os.umask(_UMASK)
 
 
-def _atomic_write_bytes(path: Path, payload: bytes) -> None:
-    """Write ``payload`` to a temporary file beside ``path``, then ``os.replace`` it."""
+_LIVE_TEMPS: set[Path] = set()  # temporaries of this process not yet renamed or removed
+_LIVE_LOCK = threading.Lock()
+_HOST = re.sub(r"[^A-Za-z0-9]+", "", socket.gethostname())[:32] or "host"
+_TEMP_TAG = "flexdof-{host}-{pid}"
+_TEMP_RE = re.compile(r"\.flexdof-(?P<host>[A-Za-z0-9]*)-(?P<pid>\d+)\.[^.]*\.tmp$")
+_NAME_IN_TEMP = 100  # characters of the target's name kept in its temporary's name
+
+
+def temp_prefix(path: Path) -> str:
+    """How the names of ``path``'s temporaries begin."""
+    return f".{path.name[:_NAME_IN_TEMP]}."
+
+
+def _pid_alive(pid: int) -> bool:
     try:
-        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def remove_stale_temps(path: str | Path) -> list[Path]:
+    """Remove temporaries of ``path`` left by a killed flexdof process (SIGKILL, power loss).
+
+    Only files this code can prove are its own and abandoned are removed: named
+    ``.NAME.flexdof-HOST-PID.XXXX.tmp`` with this host's name and the id of a
+    process that no longer runs.
+    """
+    p = Path(path)
+    removed = []
+    try:
+        candidates = list(p.parent.glob(glob.escape(temp_prefix(p)) + "flexdof-*.tmp"))
+    except OSError:
+        return removed
+    for temp in candidates:
+        match = _TEMP_RE.search(temp.name)
+        if match is None or match["host"] != _HOST or temp in _LIVE_TEMPS:
+            continue
+        pid = int(match["pid"])
+        if pid == os.getpid() or _pid_alive(pid):
+            continue
+        with contextlib.suppress(OSError):
+            temp.unlink()
+            removed.append(temp)
+            log.info("removed %s, left by a killed flexdof process (pid %d)", temp, pid)
+    return removed
+
+
+def _new_temp(path: Path) -> tuple[int, Path]:
+    """An open temporary file beside ``path``, registered for cleanup on SIGTERM."""
+    prefix = temp_prefix(path) + _TEMP_TAG.format(host=_HOST, pid=os.getpid()) + "."
+    try:
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=prefix, suffix=".tmp")
     except OSError as err:
-        raise InputError(f"{path}: cannot write here ({err})") from err
+        raise OutputError(f"{path}: cannot write here ({_reason(err)})") from err
+    with _LIVE_LOCK:
+        _LIVE_TEMPS.add(Path(tmp))
+    return fd, Path(tmp)
+
+
+def _forget(tmp: Path, *, unlink: bool) -> None:
+    with _LIVE_LOCK:
+        _LIVE_TEMPS.discard(tmp)
+    if unlink:
+        tmp.unlink(missing_ok=True)
+
+
+def _reason(err: OSError) -> str:
+    return err.strerror or str(err) if isinstance(err, OSError) else str(err)
+
+
+class OutputError(InputError):
+    """An output could not be written (disk full, permissions, name too long).
+
+    ``transient`` is True when a retry may succeed without changing the inputs
+    (no space left, I/O error, quota): workflows retry such stacks on the next run.
+    """
+
+    def __init__(self, message: str, *, transient: bool = False) -> None:
+        super().__init__(message)
+        self.transient = transient
+
+
+_TRANSIENT_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EIO, errno.EAGAIN, errno.EINTR})
+
+
+def _output_error(path: Path, err: OSError, what: str = "cannot write it") -> OutputError:
+    return OutputError(
+        f"{path}: {what} ({_reason(err)})", transient=err.errno in _TRANSIENT_ERRNOS
+    )
+
+
+def stage_bytes(path: str | Path, payload: bytes) -> Path:
+    """Write ``payload`` to a temporary file beside ``path`` (fsynced); return the temporary.
+
+    Rename it into place with :func:`commit`, or drop it with :func:`discard`.
+    """
+    p = Path(path)
+    remove_stale_temps(p)
+    fd, tmp = _new_temp(p)
     try:
         with os.fdopen(fd, "wb") as fh:
             fh.write(payload)
             fh.flush()
             os.fsync(fh.fileno())
         os.chmod(tmp, 0o666 & ~_UMASK)
-        os.replace(tmp, path)
     except BaseException as err:
-        Path(tmp).unlink(missing_ok=True)
+        _forget(tmp, unlink=True)
         if isinstance(err, OSError):
-            raise InputError(f"{path}: cannot write it ({err})") from err
+            raise _output_error(p, err) from err
         raise
+    return tmp
+
+
+def discard(temps) -> None:
+    """Remove staged temporaries that will not be committed."""
+    for tmp in temps:
+        _forget(Path(tmp), unlink=True)
+
+
+def commit(pairs) -> None:
+    """Rename staged ``(temporary, target)`` pairs into place, in order.
+
+    Result sets are committed so that a reader never sees a new image with an
+    old sidecar: the old sidecar is removed first, the sidecar comes last.
+    """
+    pairs = list(pairs)
+    try:
+        for tmp, target in pairs:
+            os.replace(tmp, target)
+            _forget(Path(tmp), unlink=False)
+    except OSError as err:
+        discard(tmp for tmp, _ in pairs)
+        raise _output_error(Path(target), err) from err
+    except BaseException:
+        discard(tmp for tmp, _ in pairs)
+        raise
+
+
+def _atomic_write_bytes(path: Path, payload: bytes) -> None:
+    """Write ``payload`` to a temporary file beside ``path``, then ``os.replace`` it."""
+    commit([(stage_bytes(path, payload), path)])
+
+
+def check_writable(path: str | Path, what: str = "output") -> None:
+    """Refuse, before any work, an output that cannot be written: a folder, a missing or
+    read-only folder, a name too long for the file system (its temporary's too)."""
+    p = Path(path)
+    if not p.parent.is_dir():
+        raise OutputError(f"{what} {p}: the folder {p.parent} does not exist")
+    try:
+        name_max = os.pathconf(p.parent, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    longest = max(len(p.name.encode()), len((p.name + ".json").encode()))
+    if longest > name_max:
+        raise OutputError(
+            f"{what} {p.name[:40]}...: the file name is {longest} bytes long; "
+            f"{p.parent} allows at most {name_max}"
+        )
+    for target in (p, p.with_name(p.name + ".json")):
+        if target.is_dir():
+            raise OutputError(f"{what} {target} is a folder; give another file name")
+    fd, tmp = _new_temp(p)  # the folder takes a new file (not read-only, not full of inodes)
+    os.close(fd)
+    _forget(tmp, unlink=True)
+
+
+def cleanup_temps() -> None:
+    """Remove every temporary this process is writing (a SIGTERM or an exit mid-write)."""
+    with _LIVE_LOCK:
+        temps = list(_LIVE_TEMPS)
+        _LIVE_TEMPS.clear()
+    for tmp in temps:
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+
+
+def _on_sigterm(signum, frame) -> None:
+    cleanup_temps()
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
+def install_signal_cleanup() -> None:
+    """Handle SIGTERM (``kill``, ``systemctl stop``) like Ctrl-C: temporaries are removed
+    and :class:`KeyboardInterrupt` is raised in the main thread. Call it once, from the
+    main thread, before a job starts (the CLI does)."""
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    atexit.register(cleanup_temps)
 
 
 def _json_default(obj: object) -> object:
@@ -76,12 +257,17 @@ def write_json(path: str | Path, obj: object) -> None:
 
     NaN and infinities are refused (JSON has none): :class:`InputError`.
     """
+    _atomic_write_bytes(Path(path), encode_json(path, obj))
+
+
+def encode_json(path: str | Path, obj: object) -> bytes:
+    """``obj`` as the bytes :func:`write_json` writes."""
     p = Path(path)
     try:
         text = json.dumps(obj, indent=2, allow_nan=False, default=_json_default)
     except (TypeError, ValueError) as err:
         raise InputError(f"{p}: cannot encode the result as JSON: {err}") from err
-    _atomic_write_bytes(p, (text + "\n").encode("utf-8"))
+    return (text + "\n").encode("utf-8")
 
 
 def _quantise(image: np.ndarray, bits: int, transfer: str, path: Path) -> np.ndarray:
@@ -147,6 +333,17 @@ def write_image(
     temporary file in the same directory and renamed over ``path``, so on any
     error no partial file is left and an existing file stays intact.
     """
+    _atomic_write_bytes(Path(path), encode_image(path, image, encoding=encoding, exif=exif))
+
+
+def encode_image(
+    path: str | Path,
+    image: np.ndarray,
+    *,
+    encoding: str | None = None,
+    exif: bytes | None = None,
+) -> bytes:
+    """The bytes :func:`write_image` writes (the format from ``path``'s extension)."""
     p = Path(path)
     ext = p.suffix.lower()
     if ext not in WRITE_ENCODINGS:
@@ -195,4 +392,4 @@ def write_image(
         if exif is not None:
             insert = _insert_jpeg_exif if ext in JPEG_EXTENSIONS else _insert_png_exif
             payload = insert(payload, exif, p)
-    _atomic_write_bytes(p, payload)
+    return payload

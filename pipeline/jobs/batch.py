@@ -48,8 +48,10 @@ from dask.callbacks import Callback
 from pipeline.core import validate
 from pipeline.errors import FlexdofError, InputError
 from pipeline.io.hashing import sha256_file
+from pipeline.io.write import OutputError
 from pipeline.jobs.options import StackOptions
 from pipeline.jobs.stack import process_stack
+from pipeline.parallel.scheduler import CONNECT_TIMEOUT, SchedulerError, check_scheduler
 
 log = logging.getLogger(__name__)
 
@@ -137,7 +139,10 @@ def run_stack_task(job: BatchJob, threads: int, run_token: str = "") -> dict:
 
     A failing stack fails alone: its error is returned as data (``status`` =
     ``"failed"``; ``error_kind`` ``"input"`` for errors in the input that a
-    retry cannot fix, else ``"error"``) so the rest of the batch goes on.
+    retry cannot fix (an :class:`InputError`), else ``"error"``: a full disk or
+    another transient write failure, a lost worker, a ValueError or other failure
+    inside numpy/scipy; workflows retry those on the next run) so the rest of the
+    batch goes on.
     """
     started = time.time()
     result = {
@@ -157,9 +162,12 @@ def run_stack_task(job: BatchJob, threads: int, run_token: str = "") -> dict:
             timings=stack_result.sidecar.get("timings_s"),
             output_sha256=sha256_file(Path(job.output)),
         )
-    except (InputError, ValueError) as err:
+    except OutputError as err:  # disk full: retried next run; a bad name or folder: not
+        kind = "error" if err.transient else "input"
+        result.update(status="failed", error_kind=kind, error=_describe(err))
+    except InputError as err:
         result.update(status="failed", error_kind="input", error=_describe(err))
-    except (FlexdofError, OSError) as err:
+    except (FlexdofError, OSError, ValueError, MemoryError) as err:  # transient or a bug
         result.update(status="failed", error_kind="error", error=_describe(err))
     except Exception as err:  # isolate one stack's bug from the batch; reported, not hidden
         log.error("stack %s: unexpected error\n%s", job.key, traceback.format_exc())
@@ -266,10 +274,11 @@ def _run_local(jobs, concurrency, threads, on_result, on_progress) -> list[dict]
 def _run_distributed(jobs, address, concurrency, threads, on_result, on_progress) -> list[dict]:
     from distributed import Client, as_completed
 
+    check_scheduler(address)  # a one-line error within seconds if no scheduler answers
     try:
-        client = Client(address, set_as_default=False)  # timeout: distributed.comm.timeouts.connect
-    except OSError as err:
-        raise InputError(f"scheduler {address}: cannot connect ({err})") from err
+        client = Client(address, timeout=CONNECT_TIMEOUT, set_as_default=False)
+    except (OSError, TimeoutError) as err:
+        raise SchedulerError(f"scheduler {address}: cannot connect ({err})") from err
     token = f"dist-{socket.gethostname()}-{os.getpid()}-{time.monotonic_ns()}"
     graph = batch_graph(jobs, threads_per_stack=threads, run_token=token)
     order = {job.key: i for i, job in enumerate(jobs)}
@@ -297,20 +306,37 @@ def _run_distributed(jobs, address, concurrency, threads, on_result, on_progress
 
         for _ in range(window):
             submit_next()
+        finished = 0
         try:
             for future in running:
                 job = futures.pop(future)
                 result = _future_result(future, job)
                 results[order[job.key]] = result
+                finished += 1
                 if on_result is not None:
                     on_result(result)
                 submit_next()
+        except _LOST as err:
+            raise SchedulerError(
+                f"scheduler {address}: lost the connection mid-run ({finished} of {len(jobs)} "
+                f"stacks finished; the others are retried by the next run): "
+                f"{type(err).__name__}: {err}"
+            ) from err
         finally:
             for future in futures:
                 future.cancel()
             if on_progress is not None:
                 client.unsubscribe_topic(PROGRESS_TOPIC)
     return [r for r in results if r is not None]
+
+
+def _lost_errors() -> tuple[type[BaseException], ...]:
+    from concurrent.futures import CancelledError
+
+    return (OSError, TimeoutError, CancelledError)
+
+
+_LOST = _lost_errors()  # what a vanished scheduler raises in the client (CommClosedError: OSError)
 
 
 def _future_result(future, job: BatchJob) -> dict:

@@ -15,6 +15,7 @@ from pipeline.errors import InputError
 
 METHODS = ("wiener", "rl", "sparse")
 ALIGN_MODES = ("estimate", "analytic", "none")
+DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
 
 
 @dataclasses.dataclass(frozen=True)
@@ -30,6 +31,7 @@ class StackOptions:
     align_max_side_px: int = 768
     save_kernel: Path | None = None
     sweep_ends: str = "full"
+    max_pixels: int = DEFAULT_MAX_PIXELS  # --max-pixels: refuse larger frames before decoding
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -38,6 +40,7 @@ class StackOptions:
             raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
         if self.blur_span_px is not None:
             validate.positive("blur_span_px", self.blur_span_px)
+        validate.whole("max_pixels", self.max_pixels)
 
 
 @dataclasses.dataclass

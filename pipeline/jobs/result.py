@@ -11,47 +11,120 @@ import numpy as np
 
 from pipeline.core.stack_kernel import wiener_options
 from pipeline.errors import InputError
-from pipeline.io.write import write_image, write_json
+from pipeline.io.write import (
+    check_writable,
+    commit,
+    discard,
+    encode_image,
+    encode_json,
+    stage_bytes,
+)
 from pipeline.jobs.options import StackOptions, StackResult
 from pipeline.parallel.accumulate import clipped_pixels
 from pipeline.parallel.tiling import deconvolve_tiled
 
 
-def check_output(output: Path) -> None:
-    """Refuse an output whose folder is missing or whose format is unknown, before any work."""
-    if not output.parent.is_dir():
-        raise InputError(f"output {output}: the folder {output.parent} does not exist")
+def check_output(output: Path, save_kernel: Path | None = None) -> None:
+    """Refuse, before any work, an output (and ``--save-kernel`` file) that cannot be
+    written: unknown format, missing or read-only folder, a folder, a name too long."""
     if output.suffix.lower() not in (".tif", ".tiff", ".png", ".jpg", ".jpeg"):
         raise InputError(f"output {output}: use a .tif, .png or .jpg file name")
+    check_writable(output, "output")
+    if save_kernel is not None:
+        save_kernel = Path(save_kernel)
+        if save_kernel.suffix.lower() not in (".tif", ".tiff"):
+            raise InputError(f"--save-kernel {save_kernel}: use a .tif file name")
+        check_writable(save_kernel, "--save-kernel")
+
+
+def check_not_input(output: Path, inputs, save_kernel: Path | None = None) -> None:
+    """Refuse an output path that is one of the stack's input files (it would overwrite it)."""
+    resolved = {Path(f).resolve(): Path(f) for f in inputs}
+    for flag, path in (("-o", output), ("--save-kernel", save_kernel)):
+        if path is not None and Path(path).resolve() in resolved:
+            raise InputError(
+                f"{flag} {path} is one of the input frames; writing it would overwrite the "
+                "frame: choose another output name"
+            )
+
+
+RESCALE_ABOVE = 1e4  # linear light has white at 1: far larger values are rescaled first
 
 
 def restore_image(
-    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None
+    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None, source=None
 ) -> np.ndarray:
     """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
 
     ``kernel_samples`` (the blur at several depths) can make Wiener robust to the
-    residual depth dependence of the IPSF (see :func:`wiener_options`).
+    residual depth dependence of the IPSF (see :func:`wiener_options`). Images whose
+    values exceed ``RESCALE_ABOVE`` (float frames in other units) are deconvolved
+    divided by their peak and scaled back, so float32 sums cannot overflow.
+    ``source`` (the frames, for messages) names the input in errors.
     """
     clipped = clipped_pixels(image) if clipped is None else clipped
     extra = wiener_options(kernel, kernel_samples) if options.method == "wiener" else {}
+    finite = np.isfinite(image)
+    if not np.all(finite):
+        raise InputError(
+            f"{source or 'the image'}: the average of the frames holds "
+            f"{int(np.count_nonzero(~finite))} non-finite values; check the frames' values"
+        )
+    peak = float(np.max(np.abs(image))) if np.size(image) else 0.0
+    scale = peak if peak > RESCALE_ABOVE else 1.0
+    data = image if scale == 1.0 else (np.asarray(image, np.float64) / scale).astype(image.dtype)
     result = deconvolve_tiled(  # clipped in any frame: at least the observed value
-        image, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra
+        data, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra
     )
+    if scale != 1.0:
+        with np.errstate(over="ignore"):
+            result = (np.asarray(result, np.float64) * scale).astype(result.dtype)
     if not np.all(np.isfinite(result)):
-        raise InputError("deconvolution produced non-finite values; try --method rl")
+        where = source or "the image"
+        if scale != 1.0:
+            raise InputError(
+                f"{where}: the frames' values reach {peak:.3g} and the restored image "
+                f"overflows {result.dtype}; scale the frames (linear light has white at 1)"
+            )
+        raise InputError(
+            f"{where}: deconvolution ({options.method}) produced non-finite values; "
+            "check the frames and --blur-span-px"
+        )
     return result
 
 
 def write_result(output, result, kernel, sidecar, timings, start, options, exif) -> StackResult:
-    """Write the image, the optional kernel and ``OUTPUT.json`` (each atomically)."""
+    """Write the image, the optional kernel and ``OUTPUT.json`` as one result.
+
+    Everything is encoded and written to temporaries first; nothing is renamed
+    unless all of them were written. Then the old sidecar is removed, the kernel
+    and the image are renamed into place and the sidecar last: a reader (or a
+    workflow's ledger) never sees a new image with an old sidecar, and a kill
+    in between leaves an image without a sidecar, which counts as unfinished.
+    """
     t0 = time.perf_counter()
-    write_image(output, result, encoding=options.encoding, exif=exif)
-    if options.save_kernel is not None and kernel is not None:
-        write_image(options.save_kernel, kernel.astype(np.float32), encoding="float32")
-        sidecar["kernel"]["file"] = str(options.save_kernel)
-    timings["write"] = time.perf_counter() - t0
-    timings["total"] = time.perf_counter() - start
-    sidecar["timings_s"] = timings
-    write_json(output.with_name(output.name + ".json"), sidecar)
+    output = Path(output)
+    sidecar_path = output.with_name(output.name + ".json")
+    staged: list[tuple[Path, Path]] = []
+    try:
+        payload = encode_image(output, result, encoding=options.encoding, exif=exif)
+        staged.append((stage_bytes(output, payload), output))
+        if options.save_kernel is not None and kernel is not None:
+            kernel_path = Path(options.save_kernel)
+            payload = encode_image(kernel_path, kernel.astype(np.float32), encoding="float32")
+            staged.insert(0, (stage_bytes(kernel_path, payload), kernel_path))
+            sidecar["kernel"]["file"] = str(options.save_kernel)
+        timings["write"] = time.perf_counter() - t0
+        timings["total"] = time.perf_counter() - start
+        sidecar["timings_s"] = timings
+        staged.append((stage_bytes(sidecar_path, encode_json(sidecar_path, sidecar)), sidecar_path))
+    except BaseException:
+        discard(tmp for tmp, _ in staged)
+        raise
+    try:
+        sidecar_path.unlink(missing_ok=True)
+    except OSError as err:
+        discard(tmp for tmp, _ in staged)
+        raise InputError(f"{sidecar_path}: cannot replace it ({err.strerror or err})") from err
+    commit(staged)
     return StackResult(output, sidecar, result)

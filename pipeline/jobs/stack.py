@@ -34,7 +34,7 @@ from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
-from pipeline.jobs.result import check_output, restore_image, write_result
+from pipeline.jobs.result import check_not_input, check_output, restore_image, write_result
 from pipeline.jobs.sweep import process_sweep_stack
 from pipeline.parallel.accumulate import weighted_sum_graph
 from pipeline.parallel.scheduler import _TaskProgress
@@ -42,6 +42,51 @@ from pipeline.parallel.scheduler import _TaskProgress
 log = logging.getLogger(__name__)
 
 PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
+MIN_FRAME_SIDE_PX = 8  # smaller frames hold no usable detail (and no room for a kernel)
+
+
+# ----------------------------------------------------------------------------- limits
+def check_frame_size(stack: Stack, shape: tuple[int, ...], options: StackOptions) -> None:
+    """Refuse frames too small to process or larger than ``options.max_pixels`` (header only)."""
+    rows, cols = shape[:2]
+    first = stack.files[0]
+    if min(rows, cols) < MIN_FRAME_SIDE_PX:
+        raise InputError(
+            f"{first}: the frames are {cols}x{rows} px; flexdof needs at least "
+            f"{MIN_FRAME_SIDE_PX}x{MIN_FRAME_SIDE_PX} px"
+        )
+    if rows * cols > options.max_pixels:
+        raise InputError(
+            f"{first}: the frames are {cols}x{rows} px ({rows * cols / 1e6:.0f} Mpx), more than "
+            f"the limit of {options.max_pixels / 1e6:.0f} Mpx; raise it with --max-pixels if "
+            "this is a real image (memory grows about 40 bytes per pixel)"
+        )
+
+
+def check_lens_size(stack: Stack, lens: Lens | None, shape: tuple[int, ...]) -> None:
+    """Warn when the frames' size is not the lens profile's sensor size (blur in px is off)."""
+    if lens is None or not lens.width_px or not lens.height_px:
+        return
+    rows, cols = shape[:2]
+    if (cols, rows) in ((lens.width_px, lens.height_px), (lens.height_px, lens.width_px)):
+        return
+    log.warning(
+        "%s: the frames are %dx%d px but lens profile %s describes a %dx%d px sensor; its "
+        "pixel pitch (so the blur in px, and the kernel) does not fit these frames: use a "
+        "profile for this resolution",
+        stack.files[0], cols, rows, lens.source or lens.name, lens.width_px, lens.height_px,
+    )
+
+
+def check_blur_span(stack: Stack, span: float, shape: tuple[int, ...], source: str) -> None:
+    """A blur span larger than the frame's diagonal cannot be deconvolved (and would need a
+    kernel larger than the frame): refuse it, naming where it came from."""
+    diagonal = float(np.hypot(*shape[:2]))
+    if not np.isfinite(span) or span > diagonal:
+        raise InputError(
+            f"{stack.base_dir}: {source} gives a blur span of {span:.4g} px, more than the "
+            f"frames' diagonal ({diagonal:.0f} px); check it"
+        )
 
 
 # ----------------------------------------------------------------------------- positions
@@ -66,14 +111,24 @@ def _sidecar_positions(stack: Stack, lens: Lens | None) -> tuple[np.ndarray | No
 def read_previews(
     files: Sequence[Path], max_side_px: int, progress: Progress = _no_progress
 ) -> list[np.ndarray]:
-    """Reduced grey copies of every frame, decoded in parallel (one cheap decode each)."""
+    """Reduced grey copies of every frame, decoded in parallel (one cheap decode each).
+
+    Float frames far brighter than white (values above 1e4) are divided by their common
+    peak, so alignment statistics cannot overflow float32.
+    """
     with _TaskProgress("read_preview", lambda done: progress("preview", done, len(files))):
-        return list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
+        previews = list(
+            dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files])
+        )
+    peak = max((float(np.max(np.abs(p))) for p in previews if p.size), default=0.0)
+    if peak > 1e4:
+        previews = [(p.astype(np.float64) / peak).astype(np.float32) for p in previews]
+    return previews
 
 
 def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
     """Aligned copies at the defocus-fit resolution, and their downscale factor."""
-    factor = max(full_shape[:2]) / PREVIEW_SIDE_PX
+    factor = max(1.0, max(full_shape[:2]) / PREVIEW_SIDE_PX)  # never upscale a small frame
     small = []
     for preview, alignment in zip(previews, alignments):
         size = (max(1, round(full_shape[1] / factor)), max(1, round(full_shape[0] / factor)))
@@ -128,6 +183,8 @@ def align_stack(
     than ``estimate``.
     """
     shape = check_frames(stack).shape
+    check_frame_size(stack, shape, options)
+    check_lens_size(stack, lens, shape)
     positions, absolute = _sidecar_positions(stack, lens)
     t0 = time.perf_counter()
     previews = None
@@ -268,8 +325,9 @@ def process_stack(
     """
     options = StackOptions() if options is None else options
     output = Path(output)
-    check_output(output)
+    check_output(output, options.save_kernel)
     stack, lens, start = load(paths, options)
+    check_not_input(output, stack.files, options.save_kernel)
     if stack.kind == "sweep":
         return process_sweep_stack(stack, lens, output, options, progress=progress)
     absolute_known = lens is not None and _sidecar_positions(stack, lens)[1]
@@ -280,6 +338,11 @@ def process_stack(
 
     t0 = time.perf_counter()
     blur_span = options.blur_span_px
+    if blur_span is not None:
+        check_blur_span(stack, blur_span, aligned.shape, "--blur-span-px")
+    elif aligned.absolute and lens is not None:
+        span = float(lens.blur_px(positions.min(), positions.max()))  # Eq. 2
+        check_blur_span(stack, span, aligned.shape, f"the focus positions with lens {lens.name!r}")
     if needs_fit:
         n = len(stack)
         if n < 2:
@@ -292,7 +355,16 @@ def process_stack(
                 f"{stack.base_dir}: all {n} frames have the same focus position: nothing to sweep"
             )
         small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
-        blur_span = defocus.estimate_blur_span(small, positions, downscale=factor)
+        max_span = min(400.0, float(np.hypot(*aligned.shape[:2])))  # bounded by the frame
+        try:
+            blur_span = defocus.estimate_blur_span(
+                small, positions, downscale=factor, max_span_px=max_span
+            )
+        except InputError as err:
+            raise InputError(
+                f"{stack.base_dir}: cannot measure the blur across the stack ({err}); "
+                "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
+            ) from err
         log.info("estimated blur span: %.1f px across the stack", blur_span)
     kernel, kernel_samples, kernel_summary = stack_kernel(
         positions, weights, lens=lens, absolute=aligned.absolute, blur_span_px=blur_span
@@ -303,13 +375,27 @@ def process_stack(
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    result = restore_image(average, kernel, options, clipped=clipped, kernel_samples=kernel_samples)
+    result = restore_image(
+        average,
+        kernel,
+        options,
+        clipped=clipped,
+        kernel_samples=kernel_samples,
+        source=_describe_frames(stack),
+    )
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
+
+
+def _describe_frames(stack: Stack) -> str:
+    files = stack.files
+    if len(files) == 1:
+        return str(files[0])
+    return f"{stack.base_dir} ({len(files)} frames, {files[0].name} .. {files[-1].name})"
 
 
 def _align(stack, options, positions, absolute, previews, shape):

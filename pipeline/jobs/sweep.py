@@ -23,6 +23,7 @@ from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile, constant_speed
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
+from pipeline.io.probe import frame_info
 from pipeline.io.read import read_frame
 from pipeline.io.stackfile import Stack, sweep_profile
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
@@ -72,6 +73,28 @@ def profile_from_range(lens: Lens, near_mm: float, far_mm: float, exposure_s: fl
     return constant_speed(start, (end - start) / exposure_s, exposure_s)
 
 
+def check_sweep_size(path: Path, lens: Lens, profile: Profile, options: StackOptions) -> None:
+    """Before any work: the capture's size (8 px to ``max_pixels``) and a swept blur no
+    larger than the frame's diagonal (the kernel grows with it)."""
+    info = frame_info(path)
+    rows, cols = info.rows, info.cols
+    if min(rows, cols) < 8:
+        raise InputError(f"{path}: the image is {cols}x{rows} px; flexdof needs at least 8x8 px")
+    if rows * cols > options.max_pixels:
+        raise InputError(
+            f"{path}: the image is {cols}x{rows} px ({rows * cols / 1e6:.0f} Mpx), more than the "
+            f"limit of {options.max_pixels / 1e6:.0f} Mpx; raise it with --max-pixels"
+        )
+    p_lo, p_hi = profile.range_mm
+    span = float(lens.blur_px(p_lo, p_hi))  # Eq. 2: a point focused at one end, seen at the other
+    diagonal = float(np.hypot(rows, cols))
+    if not np.isfinite(span) or span > diagonal:
+        raise InputError(
+            f"{path}: the sweep ({p_lo:.4g} to {p_hi:.4g} mm) blurs by up to {span:.4g} px, more "
+            f"than the image's diagonal ({diagonal:.0f} px); check the sweep's ends and the lens"
+        )
+
+
 def process_sweep_stack(
     stack: Stack,
     lens: Lens | None,
@@ -98,7 +121,9 @@ def process_sweep_image(
     progress: Progress = _no_progress,
 ) -> StackResult:
     """Deconvolve one sweep capture; writes ``output`` and ``output.json``."""
-    check_output(output)
+    check_output(output, options.save_kernel)
+    if kernel_info is None:
+        check_sweep_size(path, lens, profile, options)
     start = time.perf_counter()
     progress("kernel", 0, 1)
     kernel, samples, summary = kernel_info or sweep_kernel(lens, profile)
@@ -109,7 +134,7 @@ def process_sweep_image(
     timings["read"] = time.perf_counter() - t0
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    result = restore_image(image, kernel, options, kernel_samples=samples)
+    result = restore_image(image, kernel, options, kernel_samples=samples, source=str(path))
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     sidecar = {

@@ -28,6 +28,7 @@ same extended domain), so the tiled result equals the untiled one.
 
 from __future__ import annotations
 
+import logging
 from functools import partial
 
 import dask.array as da
@@ -35,6 +36,10 @@ import numpy as np
 
 from pipeline.core import deconvolve as dc
 from pipeline.errors import InputError
+
+log = logging.getLogger(__name__)
+
+MIN_TILE_PX = 64  # smaller tiles are all overlap: the same result, many times the work
 
 
 def deconvolve_tiled(
@@ -76,6 +81,9 @@ def deconvolve_tiled(
         raise InputError(f"tile_px must be >= 1, got {tile_px!r}")
     if overlap_px is not None and (isinstance(overlap_px, bool) or int(overlap_px) < 0):
         raise InputError(f"overlap_px must be an integer >= 0 or None, got {overlap_px!r}")
+    if tile_px < MIN_TILE_PX:  # each tile costs (tile + 2 depth)^2: tiny tiles only add work
+        log.info("tile_px %d raised to %d px", tile_px, MIN_TILE_PX)
+        tile_px = MIN_TILE_PX
     lazy = isinstance(image, da.Array)
     whole = np.asarray(image.compute() if lazy else image)
     p = dc.plan(whole, kernel, method=method, saturation=saturation, censored=censored, **options)

@@ -165,6 +165,26 @@ class Ledger:
                 (time.time(), status, planned, skipped, done, failed, run_id),
             )
 
+    def abort_run(self, run_id: int, *, planned: int, skipped: int, done: int, failed: int):
+        """Close a run that ended early (lost scheduler, Ctrl-C, a crash): its stacks still
+        queued become ``interrupted`` (processed again by the next run), the run too."""
+        now = time.time()
+        with self._transaction():
+            self._db.execute(
+                "UPDATE attempts SET status='interrupted' WHERE status='queued' AND run_id=?",
+                (run_id,),
+            )
+            self._db.execute(
+                "UPDATE stacks SET status='interrupted', updated=? "
+                "WHERE status='queued' AND run_id=?",
+                (now, run_id),
+            )
+            self._db.execute(
+                "UPDATE runs SET finished=?, status='interrupted', planned=?, skipped=?, done=?, "
+                "failed=? WHERE id=?",
+                (now, planned, skipped, done, failed, run_id),
+            )
+
     def runs(self) -> list[dict]:
         return [dict(row) for row in self._db.execute("SELECT * FROM runs ORDER BY id")]
 

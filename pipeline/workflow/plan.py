@@ -16,7 +16,7 @@ from pipeline import __version__
 from pipeline.errors import InputError
 from pipeline.io.probe import IMAGE_EXTENSIONS
 from pipeline.io.profiles import resolve_lens_path
-from pipeline.io.stackfile import load_stack, natural_key
+from pipeline.io.stackfile import is_flexdof_result, load_stack, natural_key
 from pipeline.jobs.options import StackOptions
 from pipeline.workflow.schema import InputSpec, Workflow
 
@@ -31,6 +31,10 @@ class PlannedStack:
     options: StackOptions
     watch: tuple[Path, ...]  # files whose content defines the stack (fingerprint)
     base: Path  # the stack's folder (file names in the fingerprint are relative to it)
+
+
+class NoInputsYet(InputError):
+    """An input glob matches nothing (yet): for a scheduled workflow, nothing to do."""
 
 
 # ---------------------------------------------------------------------- planning
@@ -67,23 +71,55 @@ def _display(path: Path, base: Path) -> str:
         return path.resolve().as_posix()
 
 
-def _visible_files(directory: Path) -> list[Path]:
+def _visible_files(directory: Path, outputs: Path | None = None) -> list[Path]:
     return sorted(
-        (p for p in directory.iterdir() if p.is_file() and not p.name.startswith(".")),
+        (
+            p
+            for p in directory.iterdir()
+            if p.is_file()
+            and not p.name.startswith(".")
+            and (outputs is None or not _inside(p, outputs))
+        ),
         key=natural_key,
     )
 
 
-def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
+def _inside(path: Path, folder: Path | None) -> bool:
+    return folder is not None and path.resolve().is_relative_to(folder)
+
+
+def _excluded_outputs(pattern: str, outputs: Path) -> Path | None:
+    """The output directory when it lies below the glob's fixed part (so the glob can reach
+    into it), else None (an output directory at or above the inputs excludes nothing)."""
+    fixed = []
+    for part in Path(pattern).parts:
+        if any(ch in part for ch in "*?["):
+            break
+        fixed.append(part)
+    root = Path(*fixed).resolve() if fixed else Path.cwd()
+    return outputs if outputs != root and outputs.is_relative_to(root) else None
+
+
+def plan_stacks(
+    workflow: Workflow, *, empty_ok: bool = False, on_empty: Callable[[str], None] | None = None
+) -> list[PlannedStack]:
     """Expand the inputs into stacks, with their outputs and options.
+
+    Everything inside the output directory (the workflow's own results, the
+    ledger) is left out of the inputs, so an output folder under an input glob
+    is never processed as a stack. With ``empty_ok`` (scheduled runs), an input
+    that matches nothing yet is reported to ``on_empty`` and skipped.
 
     Raises
     ------
+    NoInputsYet
+        An input glob that matches nothing (without ``empty_ok``).
     InputError
-        An input glob that matches nothing, files that do not fit ``group_by``,
-        and two stacks that would write the same output.
+        Files that do not fit ``group_by``, and two stacks that would write the
+        same output.
     """
     base = workflow.path.parent
+    outputs = workflow.output_dir.resolve()
     planned: list[PlannedStack] = []
     for index, spec in enumerate(workflow.inputs):
         where = f"{workflow.path}: [[inputs]] #{index + 1}"
@@ -99,14 +135,25 @@ def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
         )
         if spec.directories is not None:
             pattern = str(base / spec.directories)
+            excluded = _excluded_outputs(pattern, outputs)
             found = sorted(
-                (Path(p) for p in glob.glob(pattern) if Path(p).is_dir()), key=natural_key
+                (
+                    Path(p)
+                    for p in glob.glob(pattern)
+                    if Path(p).is_dir() and not _inside(Path(p), excluded)
+                ),
+                key=natural_key,
             )
             if not found:
-                raise InputError(
+                message = (
                     f"{where}: directories = {spec.directories!r} matches no "
                     f"directory (looked for {pattern})"
                 )
+                if not empty_ok:
+                    raise NoInputsYet(message)
+                if on_empty is not None:
+                    on_empty(message)
+                continue
             for directory in found:
                 if spec.frames is not None:
                     paths = (str(directory / spec.frames),)
@@ -117,7 +164,7 @@ def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
                         )
                     )
                 else:
-                    paths, watch = (str(directory),), tuple(_visible_files(directory))
+                    paths, watch = (str(directory),), tuple(_visible_files(directory, excluded))
                 planned.append(
                     PlannedStack(
                         _display(directory, base),
@@ -134,20 +181,33 @@ def plan_stacks(workflow: Workflow) -> list[PlannedStack]:
                     )
                 )
         else:
-            planned.extend(_plan_file_groups(workflow, spec, options, where))
+            try:
+                planned.extend(_plan_file_groups(workflow, spec, options, where, outputs))
+            except NoInputsYet as err:
+                if not empty_ok:
+                    raise
+                if on_empty is not None:
+                    on_empty(str(err))
     _check_unique(workflow, planned)
     return planned
 
 
 def _plan_file_groups(
-    workflow: Workflow, spec: InputSpec, options: StackOptions, where: str
+    workflow: Workflow, spec: InputSpec, options: StackOptions, where: str, outputs: Path
 ) -> list[PlannedStack]:
     base = workflow.path.parent
     pattern = str(base / spec.files)
     files = [Path(p) for p in glob.glob(pattern, recursive=True) if Path(p).is_file()]
-    files = [p for p in files if p.suffix.lower() in IMAGE_EXTENSIONS]
+    excluded = _excluded_outputs(pattern, outputs)
+    files = [
+        p
+        for p in files
+        if p.suffix.lower() in IMAGE_EXTENSIONS
+        and not _inside(p, excluded)
+        and not is_flexdof_result(p)  # outputs written beside the inputs
+    ]
     if not files:
-        raise InputError(
+        raise NoInputsYet(
             f"{where}: files = {spec.files!r} matches no image files (looked for {pattern})"
         )
     groups: dict[tuple[Path, str], list[Path]] = {}
@@ -236,6 +296,7 @@ def fingerprint(stack: PlannedStack, file_sha256: Callable[[Path], str]) -> str:
             pass  # the task reports it as the stack's error; the name is in the options
     options = dataclasses.asdict(stack.options)
     options.pop("save_kernel")
+    options.pop("max_pixels")  # a safety limit: it never changes an output
     contents = sorted(
         (_display(f, stack.base.resolve()), file_sha256(f)) for f in files if f.is_file()
     )

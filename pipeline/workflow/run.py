@@ -19,16 +19,21 @@ from __future__ import annotations
 
 import dataclasses
 import glob
+import logging
 import threading
 import time
 from collections.abc import Callable
 from pathlib import Path
 
 from pipeline.errors import FlexdofError, InputError
+from pipeline.io.write import temp_prefix
 from pipeline.jobs.batch import BatchJob, OnProgress, run_batch
+from pipeline.parallel.scheduler import check_scheduler
 from pipeline.workflow.ledger import Ledger, RunLock
 from pipeline.workflow.plan import PlannedStack, fingerprint, plan_stacks
 from pipeline.workflow.schema import Workflow
+
+log = logging.getLogger(__name__)
 
 
 # ---------------------------------------------------------------------- runs
@@ -49,7 +54,9 @@ class RunSummary:
         return not self.failed
 
 
-def _needs_run(record, fp: str, output: Path, retry_failed: bool) -> str | None:
+def _needs_run(
+    record, fp: str, output: Path, retry_failed: bool, file_sha256: Callable[[Path], str]
+) -> str | None:
     """Why a stack must be processed, or None when it is up to date."""
     if record is None:
         return "new"
@@ -57,9 +64,11 @@ def _needs_run(record, fp: str, output: Path, retry_failed: bool) -> str | None:
         return "changed"
     if record.status == "done":
         sidecar = output.with_name(output.name + ".json")
-        if output.is_file() and sidecar.is_file():
-            return None
-        return "output missing"
+        if not (output.is_file() and sidecar.is_file()):
+            return "output missing"
+        if record.output_sha256 and file_sha256(output) != record.output_sha256:
+            return "output changed since it was written"
+        return None
     if record.status == "failed" and record.error_kind == "input" and not retry_failed:
         return None
     return record.status  # interrupted, queued by a dead run, or a transient failure
@@ -67,9 +76,9 @@ def _needs_run(record, fp: str, output: Path, retry_failed: bool) -> str | None:
 
 def _remove_stale_temps(output: Path) -> None:
     """Temp files of atomic writes a killed run left behind (never complete outputs)."""
-    for name in (output.name, output.name + ".json"):
-        for temp in output.parent.glob(f".{glob.escape(name)}.*.tmp"):
-            temp.unlink(missing_ok=True)
+    for target in (output, output.with_name(output.name + ".json")):
+        for temp in output.parent.glob(glob.escape(temp_prefix(target)) + "*.tmp"):
+            temp.unlink(missing_ok=True)  # the run lock proves no other run writes here
 
 
 def run_workflow(
@@ -79,6 +88,7 @@ def run_workflow(
     on_plan: Callable[[list[tuple[PlannedStack, str]], int], None] | None = None,
     on_result: Callable[[dict], None] | None = None,
     on_progress: OnProgress | None = None,
+    empty_ok: bool | None = None,
 ) -> RunSummary:
     """One incremental run: process new or changed stacks, record them in the ledger.
 
@@ -86,9 +96,18 @@ def run_workflow(
     whole run (a second run is refused with
     :class:`~pipeline.workflow.ledger.LockedError`). ``on_plan(todo, skipped)`` is
     called once with the stacks to process and why.
+
+    ``empty_ok`` (default: when the workflow has a ``[schedule]``; the CLI passes
+    True for ``--every``/``--scheduled``): an input glob that matches nothing yet
+    (an empty drop folder) is logged as "nothing to do yet" instead of an error.
+    A run that ends early (lost scheduler, interrupt) closes its ledger run as
+    ``interrupted``; its unfinished stacks are processed by the next run.
     """
     start = time.perf_counter()
-    planned = plan_stacks(workflow)  # validates everything before any work
+    if empty_ok is None:
+        empty_ok = workflow.every_s is not None
+    # validates everything before any work
+    planned = plan_stacks(workflow, empty_ok=empty_ok, on_empty=_nothing_yet)
     try:
         workflow.output_dir.mkdir(parents=True, exist_ok=True)
     except OSError as err:
@@ -103,7 +122,9 @@ def run_workflow(
         todo, skipped, still_failed = [], [], []
         for stack in planned:
             record = ledger.get(stack.id)
-            reason = _needs_run(record, fps[stack.id], stack.output, workflow.retry_failed)
+            reason = _needs_run(
+                record, fps[stack.id], stack.output, workflow.retry_failed, ledger.file_sha256
+            )
             if reason is not None:
                 todo.append((stack, reason))
             elif record.status == "failed":
@@ -114,6 +135,8 @@ def run_workflow(
             on_plan(todo, len(planned) - len(todo))
         if dry_run:
             return RunSummary(0, len(planned), skipped, [], still_failed, 0.0)
+        if todo and workflow.scheduler:
+            check_scheduler(workflow.scheduler)  # before the ledger says "running"
         run_id = ledger.start_run(str(workflow.path), workflow.scheduler)
         jobs = []
         for stack, _ in todo:
@@ -133,19 +156,33 @@ def run_workflow(
             if on_result is not None:
                 on_result(result)
 
-        run_batch(
-            jobs,
-            scheduler=workflow.scheduler,
-            concurrency=workflow.concurrency,
-            threads_per_stack=workflow.threads_per_stack,
-            on_result=record,
-            on_progress=on_progress,
-        )
+        try:
+            run_batch(
+                jobs,
+                scheduler=workflow.scheduler,
+                concurrency=workflow.concurrency,
+                threads_per_stack=workflow.threads_per_stack,
+                on_result=record,
+                on_progress=on_progress,
+            )
+        except BaseException:
+            ledger.abort_run(
+                run_id,
+                planned=len(planned),
+                skipped=len(skipped),
+                done=len(done),
+                failed=len(failed) + len(still_failed),
+            )
+            raise
         failed += still_failed
         ledger.finish_run(
             run_id, planned=len(planned), skipped=len(skipped), done=len(done), failed=len(failed)
         )
     return RunSummary(run_id, len(planned), skipped, done, failed, time.perf_counter() - start)
+
+
+def _nothing_yet(message: str) -> None:
+    log.warning("nothing to do yet: %s", message)
 
 
 def run_every(

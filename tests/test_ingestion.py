@@ -1,0 +1,429 @@
+"""Issue 16: ingestion safety, atomic results, limits derived from the image.
+
+Each test fails on the code before the fix (the issue's reproductions, made small).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import textwrap
+import time
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.errors import InputError
+from pipeline.io.read import read_frame, read_preview
+from pipeline.io.stackfile import load_stack
+from pipeline.jobs.options import StackOptions
+from pipeline.jobs.stack import process_stack
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "stacks" / "motorcycle"
+FRAMES = [f"frame_{i:02d}.png" for i in range(8)]
+
+
+@pytest.fixture
+def sample(tmp_path) -> Path:
+    """A copy of the shipped sample (stack.toml, lens.toml, 8 frames)."""
+    folder = tmp_path / "motorcycle"
+    folder.mkdir()
+    for name in [*FRAMES, "stack.toml", "lens.toml"]:
+        shutil.copy(SAMPLE / name, folder / name)
+    return folder
+
+
+@pytest.fixture
+def frames_only(tmp_path) -> Path:
+    """The sample's frames without stack.toml: every image in the folder is a frame."""
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    for name in FRAMES:
+        shutil.copy(SAMPLE / name, folder / name)
+    return folder
+
+
+def _no_work(monkeypatch):
+    """Make the expensive phase fail the test: checks must come before it."""
+
+    def forbidden(*args, **kwargs):
+        raise AssertionError("the job started working before refusing its output")
+
+    monkeypatch.setattr("pipeline.jobs.stack.accumulate", forbidden)
+    monkeypatch.setattr("pipeline.jobs.stack.align_stack", forbidden)
+
+
+def _temps(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if p.name.endswith(".tmp"))
+
+
+# ----------------------------------------------------------------------------- ingestion
+def test_second_run_does_not_take_its_own_result_as_a_frame(frames_only, caplog):
+    # flexdof stack DIR -o DIR/sharp.png, twice: the second run must not read sharp.png.
+    out = frames_only / "sharp.png"
+    options = StackOptions(blur_span_px=12.0)
+    first = process_stack(frames_only, out, options)
+    with caplog.at_level(logging.WARNING):
+        second = process_stack(frames_only, out, options)
+    assert len(second.sidecar["inputs"]) == len(first.sidecar["inputs"]) == 8
+    assert second.sidecar["kernel"] == {**first.sidecar["kernel"]}
+    assert "sharp.png: it is a flexdof result" in caplog.text
+    assert [f.name for f in load_stack(str(frames_only / "*.png")).files] == FRAMES
+
+
+def test_pcb7_folder_skips_another_tools_result_with_a_warning(shared_data, caplog):
+    folder = shared_data / "focusstack-pcb" / "pcb7"
+    with caplog.at_level(logging.WARNING):
+        stack = load_stack(folder)
+    assert "expected.jpg" not in [f.name for f in stack.files]
+    assert len(stack) == 7
+    assert "skipping expected.jpg: its name looks like a finished result" in caplog.text
+    # Named explicitly, it is taken (the user asked for it).
+    assert load_stack([folder / "expected.jpg", folder / "pcb_001.jpg"]).files[0].name == (
+        "expected.jpg"
+    )
+
+
+@pytest.mark.parametrize("name", ["result.png", "output.tif", "pcb_edof.jpg", "stacked.tif"])
+def test_other_result_names_are_skipped(frames_only, name):
+    shutil.copy(frames_only / FRAMES[0], frames_only / (Path(name).stem + ".png"))
+    assert [f.name for f in load_stack(frames_only).files] == FRAMES
+
+
+def test_output_that_is_an_input_frame_is_refused(sample, monkeypatch):
+    frame = sample / "frame_03.png"
+    before = frame.read_bytes()
+    monkeypatch.setattr(
+        "pipeline.jobs.stack.accumulate",
+        lambda *a, **k: (_ for _ in ()).throw(AssertionError("work started")),
+    )
+    with pytest.raises(InputError, match=r"frame_03.png is one of the input frames"):
+        process_stack(sample, frame)
+    assert frame.read_bytes() == before
+
+
+def test_lens_profile_for_another_resolution_warns(sample, caplog):
+    lens = sample / "lens.toml"
+    text = lens.read_text().replace("width_px = 370", "width_px = 1024")
+    lens.write_text(text.replace("height_px = 250", "height_px = 768"))
+    with caplog.at_level(logging.WARNING):
+        process_stack(sample, sample / "out.tif")
+    assert "the frames are 370x250 px but lens profile" in caplog.text
+    assert "1024x768 px sensor" in caplog.text
+
+
+def test_matching_lens_profile_does_not_warn(sample, caplog):
+    with caplog.at_level(logging.WARNING):
+        process_stack(sample, sample / "out.tif")
+    assert "lens profile" not in caplog.text
+
+
+# ----------------------------------------------------------------------------- atomic results
+def test_sidecar_failure_leaves_the_previous_pair_intact(sample, monkeypatch):
+    out = sample / "out.tif"
+    process_stack(sample, out)
+    image, sidecar = out.read_bytes(), (sample / "out.tif.json").read_bytes()
+    from pipeline.jobs import stack as stack_job
+
+    real = stack_job.stack_sidecar
+
+    def broken(*args, **kwargs):  # a sidecar that cannot be encoded (NaN has no JSON form)
+        return {**real(*args, **kwargs), "broken": float("nan")}
+
+    monkeypatch.setattr(stack_job, "stack_sidecar", broken)
+    with pytest.raises(InputError, match="JSON"):
+        process_stack(sample, out, StackOptions(method="rl"))
+    assert out.read_bytes() == image  # not the new image beside the old sidecar
+    assert (sample / "out.tif.json").read_bytes() == sidecar
+    assert _temps(sample) == []
+
+
+def test_save_kernel_into_a_missing_folder_fails_before_the_image_is_replaced(
+    sample, monkeypatch
+):
+    out = sample / "out.tif"
+    process_stack(sample, out)
+    image = out.read_bytes()
+    _no_work(monkeypatch)
+    with pytest.raises(InputError, match=r"--save-kernel .*the folder .*missing does not exist"):
+        process_stack(sample, out, StackOptions(save_kernel=sample / "missing" / "k.tif"))
+    assert out.read_bytes() == image
+
+
+def test_output_problems_are_found_before_the_work(sample, monkeypatch):
+    _no_work(monkeypatch)
+    (sample / "dir.tif").mkdir()
+    with pytest.raises(InputError, match="is a folder"):
+        process_stack(sample, sample / "dir.tif")
+    with pytest.raises(InputError, match=r"the file name is 30\d bytes long"):
+        process_stack(sample, sample / ("x" * 300 + ".tif"))
+    (sample / "ro").mkdir()
+    if os.geteuid() == 0:  # root writes anywhere: make the folder refuse new files instead
+        import tempfile
+
+        def refuse(*args, **kwargs):
+            raise PermissionError(13, "Permission denied")
+
+        monkeypatch.setattr(tempfile, "mkstemp", refuse)
+    else:
+        (sample / "ro").chmod(0o555)
+    with pytest.raises(InputError, match=r"ro/out.tif: cannot write here \(Permission denied"):
+        process_stack(sample, sample / "ro" / "out.tif")
+
+
+_SIGTERM_JOB = textwrap.dedent(
+    """
+    import sys, time
+    from pipeline.io.write import install_signal_cleanup
+    from pipeline.jobs import result
+    from pipeline.jobs.stack import process_stack
+
+    install_signal_cleanup()
+    real = result.encode_json
+
+    def slow(path, obj):  # the image is staged; the sidecar is being written
+        print("writing", flush=True)
+        time.sleep(60)
+        return real(path, obj)
+
+    result.encode_json = slow
+    try:
+        process_stack(sys.argv[1], sys.argv[2])
+    except KeyboardInterrupt:
+        sys.exit(130)
+    """
+)
+
+
+@pytest.mark.timeout(120)
+def test_sigterm_while_writing_removes_the_temporaries(sample):
+    out = sample / "out.tif"
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _SIGTERM_JOB, str(sample), str(out)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert proc.stdout.readline().strip() == "writing"
+        assert [n for n in _temps(sample) if n.startswith(".out.tif.")]  # mid-write
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 130  # handled like Ctrl-C
+    finally:
+        proc.kill()
+        proc.stdout.close()
+    assert _temps(sample) == []
+    assert not out.exists()
+
+
+def test_a_later_write_removes_temporaries_of_a_killed_run(tmp_path):
+    from pipeline.io import write
+
+    script = textwrap.dedent(
+        f"""
+        import os, signal
+        from pipeline.io.write import stage_bytes
+        stage_bytes({str(tmp_path / "out.png")!r}, b"x" * 1000)
+        os.kill(os.getpid(), signal.SIGKILL)
+        """
+    )
+    subprocess.run([sys.executable, "-c", script], check=False, timeout=60)
+    left = _temps(tmp_path)
+    assert len(left) == 1 and left[0].startswith(".out.png.flexdof-")
+    alive = tmp_path / f".out.png.flexdof-{write._HOST}-1.abcd.tmp"  # pid 1 runs: not ours
+    alive.write_bytes(b"")
+    other = tmp_path / ".out.png.something.tmp"  # not provably flexdof's
+    other.write_bytes(b"")
+    write.write_image(tmp_path / "out.png", np.zeros((4, 4), np.float32))
+    assert _temps(tmp_path) == sorted([alive.name, other.name])
+
+
+# ----------------------------------------------------------------------------- limits
+def _tiny_stack(folder: Path, rows: int, cols: int, n: int = 4) -> Path:
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    base = rng.random((rows, cols, 3))
+    for i in range(n):
+        img = cv2.GaussianBlur(base, (3, 3), 0.5 + 0.5 * i)
+        cv2.imwrite(str(folder / f"f{i}.png"), (img * 255).astype(np.uint8))
+    return folder
+
+
+@pytest.mark.timeout(60)
+def test_3x3_frames_are_refused_at_once(tmp_path):
+    folder = _tiny_stack(tmp_path / "tiny", 3, 3)
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"the frames are 3x3 px; flexdof needs at least 8x8"):
+        process_stack(folder, tmp_path / "out.tif")
+    assert time.monotonic() - t0 < 10
+
+
+@pytest.mark.timeout(60)
+def test_16x11_frames_finish_fast(tmp_path):
+    folder = _tiny_stack(tmp_path / "tiny", 11, 16)
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"cannot measure the blur .*--blur-span-px"):
+        process_stack(folder, tmp_path / "out.tif")
+    result = process_stack(folder, tmp_path / "out.tif", StackOptions(blur_span_px=3.0))
+    assert result.image.shape == (11, 16, 3)
+    assert time.monotonic() - t0 < 20  # was 110 s and 10 GB
+
+
+def _huge_png(path: Path, side: int) -> None:
+    """A valid grey PNG of side x side black pixels: ~250 KB on disk."""
+    row = b"\x00" + bytes(side)
+    comp = zlib.compressobj(9)
+    body = b"".join(comp.compress(row) for _ in range(side)) + comp.flush()
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    ihdr = struct.pack(">IIBBBBB", side, side, 8, 0, 0, 0, 0)
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", body) + chunk(b"IEND", b"")
+    )
+
+
+@pytest.mark.timeout(60)
+def test_pixel_limit_refuses_a_decompression_bomb_before_decoding(tmp_path):
+    folder = tmp_path / "bomb"
+    folder.mkdir()
+    for i in range(2):
+        _huge_png(folder / f"f{i}.png", 16000)
+    assert (folder / "f0.png").stat().st_size < 400_000
+    with pytest.raises(InputError, match=r"16000x16000 px \(256 Mpx\).*--max-pixels"):
+        process_stack(folder, tmp_path / "out.tif")
+    with pytest.raises(InputError, match="max_pixels"):
+        StackOptions(max_pixels=0)
+
+
+@pytest.mark.timeout(60)
+def test_blur_span_larger_than_the_frame_is_refused(sample):
+    with pytest.raises(InputError, match=r"--blur-span-px gives a blur span of 4000 px.*447 px"):
+        process_stack(sample, sample / "out.tif", StackOptions(blur_span_px=4000.0))
+
+
+@pytest.mark.timeout(60)
+def test_tile_px_1_is_not_slow(sample):
+    t0 = time.monotonic()
+    process_stack(sample, sample / "out.tif", StackOptions(tile_px=1, method="rl"))
+    assert time.monotonic() - t0 < 30
+
+
+def test_absurd_image_distance_names_stack_toml_and_the_frame(sample):
+    toml = sample / "stack.toml"
+    text = toml.read_text().replace("image_distance_mm = 12.578616", "image_distance_mm = 1e300")
+    toml.write_text(text)
+    with pytest.raises(InputError, match=r"stack.toml: image_distance_mm = 1e\+300 of frame_00"):
+        load_stack(sample)
+
+
+def _corrupt_jpeg(path: Path) -> None:
+    rng = np.random.default_rng(3)
+    image = cv2.GaussianBlur((rng.random((256, 256, 3)) * 255).astype(np.uint8), (5, 5), 2)
+    data = bytearray(cv2.imencode(".jpg", image)[1].tobytes())
+    sos = data.find(b"\xff\xda")
+    middle = sos + (len(data) - sos) // 2
+    for k in range(200):  # garbage in the scan, never a marker
+        i = middle + 7 * k
+        if data[i - 1] != 0xFF and data[i] != 0xFF:
+            data[i] = int(rng.integers(0, 0xFF))
+    path.write_bytes(bytes(data))
+
+
+def test_corrupt_jpeg_scan_data_is_an_error_naming_the_file(tmp_path):
+    bad = tmp_path / "frame_07.jpg"
+    _corrupt_jpeg(bad)
+    with pytest.raises(InputError, match=r"frame_07.jpg: corrupt JPEG data \(libjpeg: "):
+        read_frame(bad)
+    with pytest.raises(InputError, match=r"frame_07.jpg: corrupt JPEG data"):
+        read_preview(bad, 64)
+
+
+def test_a_sound_jpeg_still_reads(tmp_path):
+    good = tmp_path / "good.jpg"
+    cv2.imwrite(str(good), np.full((32, 48, 3), 128, np.uint8))
+    assert read_frame(good).shape == (32, 48, 3)
+
+
+def test_sidecar_records_only_frames(frames_only):
+    out = frames_only / "x.png"
+    process_stack(frames_only, out, StackOptions(blur_span_px=10.0))
+    data = json.loads((frames_only / "x.png.json").read_text())
+    assert all(Path(p).name in FRAMES for p in data["inputs"])
+
+
+def test_float_frames_of_1e38_are_restored_not_non_finite(sample):
+    import tifffile
+
+    toml = sample / "stack.toml"
+    toml.write_text(toml.read_text().replace(".png", ".tif"))
+    for name in FRAMES:
+        frame = read_frame(sample / name) * np.float32(1e38)
+        tifffile.imwrite(
+            sample / name.replace(".png", ".tif"), frame.astype(np.float32), photometric="rgb"
+        )
+        (sample / name).unlink()
+    for method in ("wiener", "rl"):
+        result = process_stack(sample, sample / "out.tif", StackOptions(method=method))
+        assert np.all(np.isfinite(result.image)) and result.image.max() > 1e37
+
+
+def test_non_finite_restoration_names_the_frames():
+    from pipeline.jobs.result import restore_image
+
+    image = np.ones((32, 32), np.float32)
+    image[3, 4] = np.inf
+    with pytest.raises(InputError, match=r"^stack/ \(8 frames\): the average .* 1 non-finite"):
+        restore_image(image, np.ones((3, 3)) / 9, StackOptions(), source="stack/ (8 frames)")
+
+
+@pytest.mark.timeout(30)
+def test_stack_scheduler_on_a_closed_port_fails_at_once():
+    from pipeline.parallel.scheduler import SchedulerError, scheduler_context
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    t0 = time.monotonic()
+    with pytest.raises(SchedulerError, match="nothing listens on port"):
+        with scheduler_context(f"tcp://127.0.0.1:{port}"):
+            pass
+    assert time.monotonic() - t0 < 5  # was 10 s
+
+
+@pytest.mark.timeout(60)
+def test_a_sweep_blurring_beyond_the_frame_is_refused_before_its_kernel(sample):
+    (sample / "stack.toml").write_text(
+        'lens = "lens.toml"\nkind = "sweep"\n[sweep]\nfile = "frame_00.png"\n'
+        "start_image_distance_mm = 12.5\nend_image_distance_mm = 1250.0\nexposure_s = 1.0\n"
+    )
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"frame_00.png: the sweep .* more than the image's diag"):
+        process_stack(sample, sample / "out.tif")
+    assert time.monotonic() - t0 < 10
+
+
+def test_frames_named_like_results_are_kept_when_they_are_the_frames(tmp_path):
+    folder = tmp_path / "extracted"
+    folder.mkdir()
+    for i in range(3):  # what a video-frame extractor writes
+        shutil.copy(SAMPLE / FRAMES[i], folder / f"output_{i + 1:04d}.png")
+    assert len(load_stack(folder)) == 3
+    for name in ("result.png", "stacked.png"):  # two result-like names, two other frames
+        shutil.copy(SAMPLE / FRAMES[0], tmp_path / name)
+    for name in FRAMES[:2]:
+        shutil.copy(SAMPLE / name, tmp_path / name)
+    assert len(load_stack(tmp_path)) == 4  # not a minority: kept
