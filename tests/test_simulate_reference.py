@@ -21,11 +21,11 @@ from reference import cases as refcases
 from reference import disk, raytrace, smooth
 from reference import optics as ref_optics
 
-from pipeline import optics, simulate
+from pipeline.core import optics, simulate
+from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile
+from pipeline.core.scene import Camera, Scene
 from pipeline.errors import InputError
-from pipeline.motion import Profile
-from pipeline.profiles import Lens
-from pipeline.scene import Camera, Scene
 
 CASES = refcases.build_cases()
 

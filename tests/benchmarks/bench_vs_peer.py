@@ -8,7 +8,7 @@ another tool's result and is left out) and pcb10 (``pcb10/pcb_*.JPG``, 10 frames
 
 * ``flexdof``: ``flexdof stack FRAMES -o OUT.tif`` (default options and threads);
 * ``decode``: ``python -c`` reading every frame with ``cv2.imread(f, IMREAD_UNCHANGED)``
-  one after the other (the decoder :func:`pipeline.io.read_frame` uses: OpenCV's
+  one after the other (the decoder :func:`pipeline.io.read.read_frame` uses: OpenCV's
   libjpeg(-turbo) through ``cv2.imdecode``), interpreter start-up and ``import cv2``
   included;
 * ``focus-stack``: ``focus-stack --output=OUT.png FRAMES`` (its defaults: all cores).

@@ -25,8 +25,8 @@ from reference import smooth  # noqa: E402
 from reference.disk import pixel_disk_kernels  # noqa: E402
 from reference.optics import grid_radius  # noqa: E402
 
-from pipeline import psf, simulate  # noqa: E402
-from pipeline.scene import Scene  # noqa: E402
+from pipeline.core import psf, simulate  # noqa: E402
+from pipeline.core.scene import Scene  # noqa: E402
 
 CS = rc.build_cases()
 

@@ -43,7 +43,7 @@ sys.path[:0] = [str(ROOT), str(ROOT / "tests")]
 
 from reference import cases as refcases  # noqa: E402
 
-from pipeline import simulate  # noqa: E402
+from pipeline.core import simulate  # noqa: E402
 from pipeline.errors import InputError  # noqa: E402
 
 OUT = ROOT / "tests" / "benchmarks" / "results" / "simulate_reference"
@@ -152,8 +152,8 @@ def convergence(name: str) -> dict:
 
 def memory(rows: int, tol: float = 1e-3) -> dict:
     """Peak RSS of plan + render of a rolling-shutter sweep with ``rows`` rows (64 columns)."""
-    from pipeline.motion import Profile
-    from pipeline.scene import Camera, Scene
+    from pipeline.core.motion import Profile
+    from pipeline.core.scene import Camera, Scene
 
     lens = dataclasses.replace(refcases.ROLLING, height_px=rows)
     line = lens.line_time_us * 1e-6
@@ -193,9 +193,9 @@ def memory(rows: int, tol: float = 1e-3) -> dict:
 
 
 def crash() -> dict:
-    from pipeline.motion import Profile
-    from pipeline.profiles import Lens
-    from pipeline.scene import Camera, Scene
+    from pipeline.core.lens import Lens
+    from pipeline.core.motion import Profile
+    from pipeline.core.scene import Camera, Scene
 
     lens = Lens(12.5, 1.4, 20.0, 16, 12, shutter="rolling", line_time_us=30.0)
     camera = Camera(lens, Profile([0.0, 0.005], [12.6, 12.9]))

@@ -13,9 +13,9 @@ from collections.abc import Callable
 
 import numpy as np
 
-from pipeline.motion import Profile, plan_extended_dof
-from pipeline.profiles import Lens
-from pipeline.scene import Camera, Scene
+from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile, plan_extended_dof
+from pipeline.core.scene import Camera, Scene
 
 from . import raytrace, smooth
 from .optics import image_distance
