@@ -1,7 +1,7 @@
 """Real stacks, region by region: flexdof against focus-stack, enfuse and the sharpest frame.
 
     python tests/benchmarks/real_stack_regions.py [--stacks pcb7,beetle] \
-        [--flexdof-args "--method wiener"] [--result pcb7=out.tif] [--out DIR]
+        [--flexdof-args "--method wiener"] [--result pcb7=out.tif] [--out DIR] [--work DIR]
 
 For each stack: runs ``flexdof stack`` as a user would (or takes ``--result
 NAME=FILE``, whose ``FILE.json`` sidecar must sit next to it), warps every frame
@@ -74,6 +74,7 @@ ENFUSE_ARGS = [
     "--contrast-window-size=9",
 ]
 CROP_PX = 192
+PNG = [cv2.IMWRITE_PNG_COMPRESSION, 9]
 
 
 # ----------------------------------------------------------------------------- images
@@ -275,6 +276,7 @@ def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
     cv2.imwrite(
         str(out / f"{name}_maxdiff.png"),
         triple([flex, peer, frames[best]], [*names, f"frame {best}"], *corner, size)[..., ::-1],
+        PNG,
     )
     rows = []
     for gr in range(GRID):
@@ -295,7 +297,7 @@ def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
             row.append(np.full((row[-1].shape[0], 12, 3), 255, np.uint8))
         rows.append(np.concatenate(row[:-1], axis=1))
         rows.append(np.full((12, rows[-1].shape[1], 3), 255, np.uint8))
-    cv2.imwrite(str(out / f"{name}_regions.png"), np.concatenate(rows[:-1])[..., ::-1])
+    cv2.imwrite(str(out / f"{name}_regions.png"), np.concatenate(rows[:-1])[..., ::-1], PNG)
     return {
         "result": str(result),
         "blur_span_px": side.get("kernel", {}).get("blur_span_px"),
@@ -406,10 +408,12 @@ def main() -> int:
     parser.add_argument(
         "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "real_regions"
     )
+    parser.add_argument("--work", type=Path, help="flexdof/enfuse outputs (default OUT/work)")
     args = parser.parse_args()
     given = dict(item.split("=", 1) for item in args.result)
-    work = args.out / "work"
+    work = args.work or args.out / "work"
     work.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in args.stacks.split(","):
         if name not in STACKS:

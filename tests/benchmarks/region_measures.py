@@ -5,12 +5,15 @@ values (0-255, RGB), i.e. what the viewer sees, in the geometry of the result
 under test, next to the stack's frames warped into that same geometry. Four
 measures, each judged per region of a 3x3 grid, lower is better for all four:
 
-* ``sharpness``: median 10-90% edge width (px) at the strong edges of the
-  frames' mean (:mod:`pipeline.quality`). The plateaus are medians far from the
-  edge, so noise cannot shrink it; overshoot lies beyond the 90% level, so
-  ringing added to a sharp edge cannot shrink it either (tests/test_region_measures.py).
-  Linear sharpening of a soft edge does narrow it, but only by overshooting,
-  which ``halo`` then counts.
+* ``sharpness``: median edge width (px) at the strong edges of a focus-selected
+  composite of the frames (per pixel the frame with the most Laplacian energy, so
+  fine texture that is in focus in any frame is judged, not only the edges that
+  survive in the frames' mean). The width is the 10-90% rise of
+  :mod:`pipeline.quality` (plateaus: medians far from the edge, so noise cannot
+  shrink it), extended over any lobe right outside the rise that leaves the
+  frames' range: overshoot and ringing that no frame supports widen an edge
+  instead of steepening it (the plain width reads unsharp masking as sharpening;
+  tests/test_region_measures.py).
 * ``halo``: mean overshoot (levels) in a band around strong edges: how far the
   image leaves ``[min, max]`` of the aligned frames, taken over a 5x5
   neighbourhood (+-2 px of registration slack). A true all-in-focus image is, at
@@ -111,7 +114,14 @@ class Reference:
         hi_all = hi.max(axis=-1) if hi.ndim == 3 else hi
         flat &= (lo_all > 3) & (hi_all < 252)
         self.flat = cv2.erode(flat.astype(np.uint8), _disk(4)) > 0
-        points, normals = edge_points(sum(greys) / len(greys))
+        # edges where any frame is sharp: a focus-selected composite (per pixel the frame with
+        # the most Laplacian energy), not the frames' mean, which loses fine in-focus texture
+        energy = np.stack(
+            [cv2.GaussianBlur(cv2.Laplacian(g, cv2.CV_32F) ** 2, (0, 0), 4.0) for g in greys]
+        )
+        choice = np.argmax(energy, axis=0)
+        self.composite = np.take_along_axis(np.stack(greys), choice[None], axis=0)[0]
+        points, normals = edge_points(self.composite)
         keep = cv2.erode(inside.astype(np.uint8), _disk(24)) > 0
         ok = keep[points[:, 0].astype(int), points[:, 1].astype(int)]
         self.points, self.normals = points[ok], normals[ok]
@@ -273,7 +283,7 @@ def at_least_as_good(measure: str, a: float, b: float) -> bool | None:
     if not (np.isfinite(a) and np.isfinite(b)):
         return None
     absolute, relative = TIES[measure]
-    return a <= b + max(absolute, relative * abs(b))
+    return bool(a <= b + max(absolute, relative * abs(b)))
 
 
 def verdict(measure: str, a: float, b: float) -> str:
