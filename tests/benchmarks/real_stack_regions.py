@@ -1,0 +1,439 @@
+"""Real stacks, region by region: flexdof against focus-stack, enfuse and the sharpest frame.
+
+    python tests/benchmarks/real_stack_regions.py [--stacks pcb7,beetle] \
+        [--flexdof-args "--method wiener"] [--result pcb7=out.tif] [--out DIR] [--work DIR]
+
+For each stack: runs ``flexdof stack`` as a user would (or takes ``--result
+NAME=FILE``, whose ``FILE.json`` sidecar must sit next to it), warps every frame
+into the result's geometry with the sidecar's homographies, registers the peers'
+results to that geometry (SIFT + RANSAC homography refined by ECC; focus-stack
+crops and rescales its output), splits the common area into a 3x3 grid and
+measures per region sharpness, halo, haze and noise (see ``region_measures.py``
+for what they are and why they cannot be gamed) of flexdof, focus-stack,
+enfuse (``align_image_stack -m`` + ``enfuse --contrast-weight=1 --hard-mask``,
+when installed; cached in ``DIR/work``) and the region's sharpest aligned frame.
+
+Writes ``DIR/real_regions.md`` (per stack and measure: values per region and
+flexdof's verdict against focus-stack; the count of regions where flexdof is at
+least as good on every measure), ``DIR/real_regions.json`` and crops at 1:1
+pixels, flexdof | focus-stack | sharpest frame: ``DIR/NAME_maxdiff.png`` (the
+window where flexdof and focus-stack differ most) and ``DIR/NAME_regions.png``
+(the most different window of each region, laid out as the 3x3 grid).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from region_measures import (
+    GRID,
+    MEASURES,
+    TIES,
+    UNITS,
+    Reference,
+    at_least_as_good,
+    verdict,
+)
+
+SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
+STACKS = {
+    "pcb7": "focusstack-pcb/pcb7/pcb_*.jpg",
+    "pcb10": "focusstack-pcb/pcb10/pcb_*.JPG",
+    "beetle": "chimpstackr-beetle/DSC_*.jpg",
+    "amber": "shinestacker-amber/*.jpg",
+}
+FOCUS_STACK = SHARED / "peer-results" / "focus-stack"
+REGION_NAMES = [
+    "top-left",
+    "top",
+    "top-right",
+    "left",
+    "centre",
+    "right",
+    "bottom-left",
+    "bottom",
+    "bottom-right",
+]
+ENFUSE_ARGS = [
+    "--exposure-weight=0",
+    "--saturation-weight=0",
+    "--contrast-weight=1",
+    "--hard-mask",
+    "--contrast-window-size=9",
+]
+CROP_PX = 192
+PNG = [cv2.IMWRITE_PNG_COMPRESSION, 9]
+
+
+# ----------------------------------------------------------------------------- images
+def read_srgb(path: Path) -> np.ndarray:
+    """An image as float32 RGB sRGB code values 0-255 (float TIFFs are linear: encoded)."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise SystemExit(f"cannot read {path}")
+    if image.ndim == 2:
+        image = np.repeat(image[..., None], 3, axis=2)
+    image = image[..., :3][..., ::-1]
+    if image.dtype == np.uint8:
+        return image.astype(np.float32)
+    if image.dtype == np.uint16:
+        return image.astype(np.float32) / 257.0
+    linear = np.clip(image.astype(np.float32), 0, 1)
+    encoded = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    return (255 * encoded).astype(np.float32)
+
+
+def warp(image: np.ndarray, h: np.ndarray, shape) -> tuple[np.ndarray, np.ndarray]:
+    """``out(H x) = image(x)`` on a grid of ``shape``; and where it is covered."""
+    size = (shape[1], shape[0])
+    out = cv2.warpPerspective(
+        image, h, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+    )
+    ones = np.ones(image.shape[:2], np.float32)
+    cover = cv2.warpPerspective(
+        ones, h, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT
+    )
+    return out, cover > 0.999
+
+
+def to_u8(image: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(image), 0, 255).astype(np.uint8)
+
+
+def register(
+    moving: np.ndarray, fixed: np.ndarray, max_side: int = 1200
+) -> tuple[np.ndarray, float]:
+    """Homography mapping ``moving``'s pixels onto ``fixed``'s, and the ECC correlation."""
+    scale = min(1.0, max_side / max(fixed.shape[:2]))
+    m_scale = min(1.0, max_side / max(moving.shape[:2]))
+
+    def small(img, s):
+        g = cv2.cvtColor(to_u8(img), cv2.COLOR_RGB2GRAY)
+        return cv2.resize(g, None, fx=s, fy=s, interpolation=cv2.INTER_AREA) if s < 1 else g
+
+    a, b = small(moving, m_scale), small(fixed, scale)
+    sift = cv2.SIFT_create(5000)
+    ka, da = sift.detectAndCompute(a, None)
+    kb, db = sift.detectAndCompute(b, None)
+    matches = cv2.BFMatcher().knnMatch(da, db, k=2)
+    good = [m for m, n in (p for p in matches if len(p) == 2) if m.distance < 0.75 * n.distance]
+    src = np.float32([ka[m.queryIdx].pt for m in good])
+    dst = np.float32([kb[m.trainIdx].pt for m in good])
+    h, _ = cv2.findHomography(src, dst, cv2.RANSAC, 3.0)
+    # refine with ECC (on smoothed grey; maps fixed coords -> moving coords)
+    warp_m = np.linalg.inv(h).astype(np.float32)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+    try:
+        cc, warp_m = cv2.findTransformECC(
+            b.astype(np.float32),
+            a.astype(np.float32),
+            warp_m,
+            cv2.MOTION_HOMOGRAPHY,
+            criteria,
+            None,
+            5,
+        )
+        h = np.linalg.inv(warp_m.astype(np.float64))
+    except cv2.error:
+        cc = float("nan")
+    up = np.diag([1 / scale, 1 / scale, 1.0])
+    down = np.diag([m_scale, m_scale, 1.0])
+    full = up @ h @ down
+    return full / full[2, 2], float(cc)
+
+
+# ----------------------------------------------------------------------------- producers
+def run_flexdof(name: str, pattern: str, work: Path, extra: list[str]) -> Path:
+    out = work / f"{name}_flexdof.tif"
+    files = sorted(glob.glob(str(SHARED / pattern)))
+    cmd = ["flexdof", "stack", *files, "-o", str(out), *extra]
+    print("$", " ".join(cmd[:3]), "...", " ".join(cmd[-2 - len(extra) :]), flush=True)
+    subprocess.run(cmd, check=True)
+    return out
+
+
+def run_enfuse(name: str, pattern: str, work: Path) -> Path | None:
+    """Cached align_image_stack + enfuse result, or None when they are not installed."""
+    out = work / f"{name}_enfuse.tif"
+    if out.exists():
+        return out
+    if not (shutil.which("align_image_stack") and shutil.which("enfuse")):
+        return None
+    files = sorted(glob.glob(str(SHARED / pattern)))
+    tmp = work / f"{name}_enfuse_aligned"
+    tmp.mkdir(parents=True, exist_ok=True)
+    subprocess.run(
+        ["align_image_stack", "-m", "--use-given-order", "-a", str(tmp / "al_"), *files],
+        check=True,
+        capture_output=True,
+    )
+    aligned = sorted(str(p) for p in tmp.glob("al_*.tif"))
+    subprocess.run(
+        ["enfuse", *ENFUSE_ARGS, "-o", str(out), *aligned], check=True, capture_output=True
+    )
+    shutil.rmtree(tmp)
+    return out
+
+
+# ----------------------------------------------------------------------------- crops
+def _label(tile: np.ndarray, text: str) -> np.ndarray:
+    bar = np.full((18, tile.shape[1], 3), 255, np.uint8)
+    cv2.putText(bar, text, (3, 13), cv2.FONT_HERSHEY_SIMPLEX, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([bar, tile])
+
+
+def triple(images: list[np.ndarray], names: list[str], y0: int, x0: int, size: int) -> np.ndarray:
+    tiles = []
+    for img, nm in zip(images, names):
+        tiles.append(_label(to_u8(img[y0 : y0 + size, x0 : x0 + size]), nm))
+        tiles.append(np.full((size + 18, 4, 3), 255, np.uint8))
+    return np.concatenate(tiles[:-1], axis=1)
+
+
+def sharpest_in(frames: list[np.ndarray], y0: int, x0: int, size: int) -> int:
+    """The frame with the most Laplacian energy in a window (the one a viewer would pick)."""
+
+    def energy(f):
+        g = cv2.GaussianBlur(f[y0 : y0 + size, x0 : x0 + size].mean(axis=-1), (0, 0), 1.0)
+        return float(np.mean(cv2.Laplacian(g, cv2.CV_32F) ** 2))
+
+    return int(np.argmax([energy(f) for f in frames]))
+
+
+def crop_windows(
+    a: np.ndarray, b: np.ndarray, valid: np.ndarray, regions: np.ndarray, size: int
+) -> tuple[tuple[int, int], list[tuple[int, int]]]:
+    """Top-left corners of the most different window overall and in each region."""
+    diff = np.abs(a.mean(axis=-1) - b.mean(axis=-1)) * valid
+    score = cv2.boxFilter(diff, -1, (size, size), normalize=True, borderType=cv2.BORDER_CONSTANT)
+    half = size // 2
+    inner = np.zeros_like(valid)
+    inner[half : -half or None, half : -half or None] = True
+    inner &= cv2.erode(valid.astype(np.uint8), np.ones((size, size), np.uint8)) > 0
+
+    def best(mask):
+        s = np.where(mask, score, -1)
+        cy, cx = np.unravel_index(int(np.argmax(s)), s.shape)
+        return int(cy - half), int(cx - half)
+
+    return best(inner), [
+        best(inner & (regions == r)) if (inner & (regions == r)).any() else best(inner)
+        for r in range(GRID * GRID)
+    ]
+
+
+# ----------------------------------------------------------------------------- one stack
+def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
+    t0 = time.perf_counter()
+    side = json.loads(Path(str(result) + ".json").read_text())
+    flex = read_srgb(result)
+    shape = flex.shape[:2]
+    frames, valid = [], np.ones(shape, bool)
+    for meta, path in zip(side["frames"], side["inputs"]):
+        f, cover = warp(read_srgb(Path(path)), np.array(meta["homography"]), shape)
+        frames.append(f)
+        valid &= cover
+    methods = {"flexdof": flex}
+    registration = {}
+    peers = {
+        "focus-stack": FOCUS_STACK / f"{name}.png",
+        "enfuse": run_enfuse(name, STACKS[name], work),
+    }
+    for peer, path in peers.items():
+        if path is None or not Path(path).exists():
+            continue
+        image = read_srgb(Path(path))
+        h, cc = register(image, flex)
+        warped, cover = warp(image, h, shape)
+        methods[peer] = warped
+        valid &= cover
+        registration[peer] = cc
+    ref = Reference(frames, valid)
+    scores = {m: ref.measure(img) for m, img in methods.items()}
+    scores["sharpest frame"] = ref.sharpest_frames()
+    scores = {m: {k: v.tolist() for k, v in s.items()} for m, s in scores.items()}
+
+    # crops: flexdof | focus-stack | the region's sharpest frame
+    peer = methods.get("focus-stack", flex)
+    corner, per_region = crop_windows(
+        flex, peer, ref.valid, ref.regions, min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
+    )
+    size = min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
+    names = ["flexdof", "focus-stack"]
+    best = sharpest_in(frames, *corner, size)
+    cv2.imwrite(
+        str(out / f"{name}_maxdiff.png"),
+        triple([flex, peer, frames[best]], [*names, f"frame {best}"], *corner, size)[..., ::-1],
+        PNG,
+    )
+    rows = []
+    for gr in range(GRID):
+        row = []
+        for gc in range(GRID):
+            r = gr * GRID + gc
+            y0, x0 = per_region[r]
+            best = sharpest_in(frames, y0, x0, size)
+            row.append(
+                triple(
+                    [flex, peer, frames[best]],
+                    [f"{REGION_NAMES[r]}: flexdof", "focus-stack", f"sharpest frame here: {best}"],
+                    y0,
+                    x0,
+                    size,
+                )
+            )
+            row.append(np.full((row[-1].shape[0], 12, 3), 255, np.uint8))
+        rows.append(np.concatenate(row[:-1], axis=1))
+        rows.append(np.full((12, rows[-1].shape[1], 3), 255, np.uint8))
+    cv2.imwrite(str(out / f"{name}_regions.png"), np.concatenate(rows[:-1])[..., ::-1], PNG)
+    return {
+        "result": str(result),
+        "blur_span_px": side.get("kernel", {}).get("blur_span_px"),
+        "registration_ecc": registration,
+        "valid_fraction": float(ref.valid.mean()),
+        "sharpest_frame_per_region": ref.sharpest.tolist(),
+        "maxdiff_window": {"row": corner[0], "col": corner[1], "size": size},
+        "region_windows": per_region,
+        "scores": scores,
+        "seconds": time.perf_counter() - t0,
+    }
+
+
+# ----------------------------------------------------------------------------- report
+def fmt(v: float, measure: str) -> str:
+    if not np.isfinite(v):
+        return "-"
+    return f"{v:.3f}" if measure == "haze" else f"{v:.2f}"
+
+
+def good_regions(scores: dict, against: str = "focus-stack") -> tuple[int, int]:
+    """Regions where flexdof is at least as good as ``against`` on every measure."""
+    if against not in scores:
+        return 0, 0
+    ok = 0
+    for r in range(GRID * GRID):
+        verdicts = [
+            at_least_as_good(m, scores["flexdof"][m][r], scores[against][m][r]) for m in MEASURES
+        ]
+        ok += all(v is not False for v in verdicts)
+    return ok, GRID * GRID
+
+
+def report(results: dict, args) -> str:
+    lines = [
+        "# Real stacks, region by region (issue 13)",
+        "",
+        f"flexdof args: `{args.flexdof_args}`. All values in 8-bit sRGB display terms; "
+        "lower is better for every measure. Verdict: flexdof against focus-stack "
+        "(ties within " + ", ".join(f"{m} {a:g}/{r:.0%}" for m, (a, r) in TIES.items()) + ").",
+        "",
+        "| stack | blur span px | regions flexdof >= focus-stack on all 4 | "
+        "... >= enfuse | sharpness wins/ties/losses | halo | haze | noise |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for name, res in results.items():
+        s = res["scores"]
+        counts = []
+        for m in MEASURES:
+            v = (
+                [verdict(m, s["flexdof"][m][r], s["focus-stack"][m][r]) for r in range(9)]
+                if "focus-stack" in s
+                else []
+            )
+            counts.append(f"{v.count('win')}/{v.count('tie')}/{v.count('loss')}")
+        a, n = good_regions(s)
+        e, ne = good_regions(s, "enfuse")
+        span = res["blur_span_px"]
+        lines.append(
+            f"| {name} | {span:.1f} | **{a}/{n}** | {e}/{ne} | " + " | ".join(counts) + " |"
+        )
+    for name, res in results.items():
+        s = res["scores"]
+        lines += [
+            "",
+            f"## {name}",
+            "",
+            f"Registration ECC: {res['registration_ecc']}; common area "
+            f"{res['valid_fraction']:.0%}; sharpest frame per region "
+            f"{res['sharpest_frame_per_region']}. Crops: `{name}_maxdiff.png`, "
+            f"`{name}_regions.png`.",
+            "",
+        ]
+        methods = [m for m in ("flexdof", "focus-stack", "enfuse", "sharpest frame") if m in s]
+        for m in MEASURES:
+            lines += [
+                f"**{m}** ({UNITS[m]})",
+                "",
+                "| region | " + " | ".join(methods) + " | flexdof vs focus-stack |",
+                "|---" * (len(methods) + 2) + "|",
+            ]
+            for r in range(GRID * GRID):
+                vals = [fmt(s[k][m][r], m) for k in methods]
+                v = (
+                    verdict(m, s["flexdof"][m][r], s["focus-stack"][m][r])
+                    if "focus-stack" in s
+                    else "-"
+                )
+                lines.append(f"| {REGION_NAMES[r]} | " + " | ".join(vals) + f" | {v} |")
+            lines.append("")
+        a, n = good_regions(s)
+        lines.append(
+            f"flexdof at least as good as focus-stack on every measure in **{a}/{n}** regions."
+        )
+    return "\n".join(lines) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stacks", default=",".join(STACKS))
+    parser.add_argument("--flexdof-args", default="--threads 2")
+    parser.add_argument(
+        "--result",
+        action="append",
+        default=[],
+        help="NAME=FILE: use an existing flexdof result (with FILE.json)",
+    )
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "real_regions"
+    )
+    parser.add_argument("--work", type=Path, help="flexdof/enfuse outputs (default OUT/work)")
+    args = parser.parse_args()
+    given = dict(item.split("=", 1) for item in args.result)
+    work = args.work or args.out / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for name in args.stacks.split(","):
+        if name not in STACKS:
+            raise SystemExit(f"unknown stack {name!r}; choose from {', '.join(STACKS)}")
+        result = (
+            Path(given[name])
+            if name in given
+            else run_flexdof(name, STACKS[name], work, shlex.split(args.flexdof_args))
+        )
+        results[name] = evaluate(name, result, work, args.out)
+        a, n = good_regions(results[name]["scores"])
+        print(
+            f"{name}: flexdof >= focus-stack on every measure in {a}/{n} regions "
+            f"({results[name]['seconds']:.0f} s)",
+            flush=True,
+        )
+    (args.out / "real_regions.json").write_text(json.dumps(results, indent=1))
+    (args.out / "real_regions.md").write_text(report(results, args))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
