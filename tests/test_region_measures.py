@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.quality import edge_widths as plain_edge_widths
+from pipeline.core.quality import edge_widths as plain_edge_widths
 
 sys.path.insert(0, str(Path(__file__).resolve().parent / "benchmarks"))
 import region_measures as rm

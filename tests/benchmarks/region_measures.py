@@ -44,7 +44,7 @@ import numpy as np
 from scipy import ndimage
 
 # The one import of the pipeline package (module names are being restructured).
-from pipeline.quality import edge_points
+from pipeline.core.quality import edge_points
 
 GRID = 3
 HALO_SLACK_PX = 2  # registration slack of the frames' range (5x5 neighbourhood)
@@ -225,7 +225,7 @@ def edge_widths(
 ) -> np.ndarray:
     """10-90% rise width (px) of each edge, extended over lobes the frames do not show.
 
-    As :func:`pipeline.quality.edge_widths` (plateaus: medians of the profile beyond
+    As :func:`pipeline.core.quality.edge_widths` (plateaus: medians of the profile beyond
     ``reach_px / 2``; the 10% and 90% crossings), on profiles averaged over three
     parallel lines 1 px apart. With the frames' range ``lo``/``hi`` (grey), where the
     profile, within ``lobe_gap_px`` outside a crossing, leaves that range by more than
