@@ -65,7 +65,8 @@ def main() -> int:
         rows.append(("python -c pass (floor)", floor))
         for command in COMMANDS:
             argv = [args.flexdof, *command, "--help"]
-            rows.append((" ".join(["flexdof", *command, "--help"]), wall_times(argv, args.runs, cwd)))
+            name = " ".join(["flexdof", *command, "--help"])
+            rows.append((name, wall_times(argv, args.runs, cwd)))
     print(f"| command | median s | min s | max s |  ({args.runs} runs each, {sys.platform})")
     print("|---|---|---|---|")
     over = []
