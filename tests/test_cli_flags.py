@@ -232,3 +232,24 @@ def test_dof_range_touching_the_stack_end_is_clamped(tmp_path, capsys):
     assert main(["dof", str(sample), "-o", str(out), "--in-focus", "100:300"]) == 2
     err = capsys.readouterr().err
     assert "--in-focus 100:300" in err and "focus range" in err and "outside=" not in err
+
+
+def test_render_reports_progress_per_step():
+    """`flexdof simulate` shows a bar fed by render(progress=...): one call per plan step."""
+    import numpy as np
+
+    from pipeline.core import optics, simulate
+    from pipeline.core.lens import Lens
+    from pipeline.core.motion import Profile
+    from pipeline.core.scene import Camera, Scene
+
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=4.65, width_px=48, height_px=32)
+    depth = np.where(np.arange(48)[None, :] < 24, 450.0, 2000.0) * np.ones((32, 1))
+    scene = Scene.from_depth(np.random.default_rng(0).uniform(0, 1, (32, 48)), depth)
+    ends = [optics.image_distance(12.5, 2000), optics.image_distance(12.5, 450)]
+    sweep = Profile([0.0, 0.1], ends)
+    calls = []
+    simulate.render(scene, Camera(lens, sweep), progress=lambda d, t: calls.append((d, t)))
+    assert calls and calls[-1][0] == calls[-1][1] and [d for d, _ in calls] == list(
+        range(1, len(calls) + 1)
+    )
