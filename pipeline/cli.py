@@ -1,42 +1,54 @@
-"""The ``flexdof`` command: sub-commands are discovered in :mod:`pipeline.commands`."""
+"""The ``flexdof`` command: sub-commands are discovered in :mod:`pipeline.commands`.
+
+Building the parser imports argparse and the command modules only (each imports its
+job inside ``run``), so ``flexdof --help`` never loads numpy, dask or OpenCV.
+"""
 
 from __future__ import annotations
 
-import argparse
-import importlib
 import logging
 import pkgutil
 import sys
+from importlib import import_module
 
 from pipeline import __version__, commands
+from pipeline.commands._flags import Parser
 from pipeline.errors import FlexdofError
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser() -> Parser:
     """The top-level parser with every sub-command of :mod:`pipeline.commands`."""
-    parser = argparse.ArgumentParser(
+    parser = Parser(
         prog="flexdof",
+        top=True,
         description="Flexible depth-of-field photography (Kuthirummal et al., TPAMI 2011).",
+        epilog="Run `flexdof COMMAND --help` for a command's flags.",
     )
     parser.add_argument("--version", action="version", version=f"flexdof {__version__}")
-    verbosity = parser.add_mutually_exclusive_group()
-    verbosity.add_argument("-q", "--quiet", action="store_true", help="only errors")
-    verbosity.add_argument("-v", "--verbose", action="store_true", help="debug logging")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     subparsers.required = True
     for info in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
         if info.name.startswith("_"):
-            continue  # helpers shared by commands (e.g. the progress display)
-        importlib.import_module(f"{commands.__name__}.{info.name}").register(subparsers)
+            continue  # helpers shared by commands (flags, progress display)
+        import_module(f"{commands.__name__}.{info.name}").register(subparsers)
     return parser
+
+
+def configure_logging(quiet: bool, verbose: bool) -> None:
+    """Warnings and errors by default; ``-v`` adds normal events (INFO) and DEBUG; ``-q``
+    leaves errors only."""
+    level = logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING
+    logging.basicConfig(format="%(levelname)s: %(message)s")  # no-op when already set up
+    logging.getLogger().setLevel(level)
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; user errors are printed as one line and give exit code 2."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    level = logging.ERROR if args.quiet else logging.DEBUG if args.verbose else logging.INFO
-    logging.basicConfig(level=level, format="%(levelname)s: %(message)s")
+    if args.quiet and args.verbose:
+        parser.error("-q/--quiet and -v/--verbose exclude each other")
+    configure_logging(args.quiet, args.verbose)
     try:
         return int(args.func(args) or 0)
     except BrokenPipeError:  # output piped into e.g. `head`

@@ -46,7 +46,8 @@ def test_psf_writes_the_kernel_and_the_fig3_plot(tmp_path, capsys):
         (["psf", "--depth", "10"], "focal length"),
         (["psf", "--exposure", "0"], "exposure"),
         (["psf", "-o", "kernel.bmp"], ".npy or .tif"),
-        (["optics", "--near", "500"], "--near and --far"),
+        (["optics", "--near-mm", "500"], "--near-mm and --far-mm"),
+        (["optics", "--near", "500"], "--near-mm and --far-mm"),  # old spelling
         (["optics", "--lens", "no-such-lens"], "no-such-lens"),
     ],
 )

@@ -6,6 +6,8 @@ import argparse
 import time
 from pathlib import Path
 
+from pipeline.commands import _flags
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -22,25 +24,50 @@ def register(subparsers) -> None:
             "Sweep the accuracy knobs (IPSF quadrature and size, simulation tolerance/"
             "occlusion/magnification, alignment, deconvolution method/iterations/"
             "regularisation/tiles/precision, frames per stack) on scenes with ground truth; "
-            "write accuracy.csv, accuracy.md, pareto.png and summary.md into --out. "
-            "The full run takes 10-20 min on 2 cores; --quick about a minute."
+            "write accuracy.csv, accuracy.md, pareto.png and summary.md into --output. "
+            "The full run takes 10-20 min on 2 cores; --quick about a minute. Needs the "
+            "'bench' extra (pip install 'flexdof[bench]')."
         ),
     )
     acc.add_argument("--quick", action="store_true", help="small configuration (CI, < 2 min)")
-    acc.add_argument("--out", type=Path, default=Path("results/accuracy"), help="output folder")
+    acc.add_argument(
+        "-o", "--output", "--out", type=Path, default=Path("results/accuracy"),
+        help="output folder",
+    )
+    _flags.add_json(acc)
     acc.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    _flags.require_matplotlib("flexdof bench accuracy")
+    import sys
+
+    from pipeline.commands import print_json
     from pipeline.paper import bench
 
+    def progress(stage: str) -> None:
+        if not args.quiet:
+            print(f"bench: {stage}", file=sys.stderr, flush=True)
+
     start = time.perf_counter()
-    rows = bench.run_accuracy(
-        args.out, quick=args.quick, progress=lambda stage: print(f"bench: {stage}", flush=True)
-    )
+    rows = bench.run_accuracy(args.output, quick=args.quick, progress=progress)
     dominated = bench.dominated_defaults(rows)
+    seconds = time.perf_counter() - start
+    if args.json:
+        print_json(
+            {
+                "measurements": len(rows),
+                "seconds": seconds,
+                "output": str(args.output),
+                "dominated_defaults": [
+                    {"knob": d.knob, "scene": d.scene, "default": d.setting, "by": r.setting}
+                    for d, r in dominated
+                ],
+            }
+        )
+        return 0
     print(
-        f"{len(rows)} measurements in {time.perf_counter() - start:.0f} s -> {args.out}/"
+        f"{len(rows)} measurements in {seconds:.0f} s -> {args.output}/"
         "{accuracy.csv, accuracy.md, pareto.png, summary.md}"
     )
     for d, r in dominated:

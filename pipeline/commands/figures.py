@@ -8,7 +8,7 @@ import math
 import time
 from pathlib import Path
 
-import numpy as np
+from pipeline.commands import _flags
 
 SIMULATED = ("3", "5", "9")
 APPLICATIONS = ("6", "10", "11", "12")
@@ -30,9 +30,10 @@ def register(subparsers) -> None:
         "by Wiener deconvolution of a natural image) into --out. With --applications (or "
         "--only 6/10/11/12): render the four applications -- extended (Fig. 6), "
         "discontinuous (Fig. 10), tilted (Fig. 11) and non-planar (Fig. 12) DOF -- on "
-        "synthetic scenes, as PNG panels plus applications.md with the measurements.",
+        "synthetic scenes, as PNG panels plus applications.md with the measurements. "
+        "Needs the 'plots' extra (pip install 'flexdof[plots]').",
     )
-    parser.add_argument("--out", type=Path, required=True, help="output directory")
+    _flags.add_output(parser, "output folder (created)")
     parser.add_argument(
         "--only",
         action="append",
@@ -44,22 +45,28 @@ def register(subparsers) -> None:
         action="store_true",
         help="also render the four applications (Figs. 6, 10, 11, 12)",
     )
+    _flags.add_json(parser)
     parser.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
+    _flags.require_matplotlib("flexdof figures")
+    from pipeline.commands import print_json
     from pipeline.paper import figures
 
     which = list(args.only or ([] if args.applications else figures.FIGURES))
     if args.applications:
         which += [a for a in APPLICATIONS if a not in which]
     simulated = [w for w in which if w in SIMULATED]
-    written = figures.render_figures(args.out, which=simulated) if simulated else []
+    written = figures.render_figures(args.output, which=simulated) if simulated else []
     apps = [w for w in which if w in APPLICATIONS]
     if apps:
-        written += write_applications(args.out, apps)
-    for path in written:
-        print(path)
+        written += write_applications(args.output, apps)
+    if args.json:
+        print_json({"figures": which, "written": [str(p) for p in written]})
+    elif not args.quiet:
+        for path in written:
+            print(path)
     return 0
 
 
@@ -98,6 +105,7 @@ def write_applications(out_dir: Path, which) -> list[Path]:
 
 
 def _panels_png(app, path: Path) -> None:
+    import numpy as np
     from matplotlib.figure import Figure
 
     from pipeline.core.colour import linear_to_srgb

@@ -5,9 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from pipeline.commands import print_json
-from pipeline.core import optics
-from pipeline.io.profiles import load_lens
+from pipeline.commands import _flags
 
 FIG2_RANGES = ((1000.0, math.inf), (500.0, math.inf), (200.0, 500.0))
 
@@ -16,21 +14,26 @@ def register(subparsers) -> None:
     parser = subparsers.add_parser(
         "optics",
         help="detector translation and image shift for sweeping a depth range (Fig. 2)",
-        description="Sweep geometry like the paper's Fig. 2. Without --near/--far, prints "
-        "Fig. 2's three depth ranges.",
+        description="Sweep geometry like the paper's Fig. 2. Without --near-mm/--far-mm, "
+        "prints Fig. 2's three depth ranges.",
     )
+    _flags.add_lens(parser, default=_flags.DEFAULT_LENS)
+    _flags.add_depth_range(parser, what="the depth range (default: Fig. 2's ranges)")
     parser.add_argument(
-        "--lens", default="fujinon-12.5mm-f1.4-sony-1-3in", help="profile name or path"
+        "--coc-um",
+        type=float,
+        default=14.1,
+        metavar="UM",
+        help="circle of confusion of the normal camera's DOF, um",
     )
-    parser.add_argument("--near", type=float, help="near end of the depth range, mm")
-    parser.add_argument("--far", type=float, help="far end, mm (inf allowed)")
-    parser.add_argument("--coc-um", type=float, default=14.1, help="circle of confusion for DOF")
-    parser.add_argument("--json", action="store_true", help="machine-readable output")
+    _flags.add_json(parser)
     parser.set_defaults(func=run)
 
 
 def sweep_geometry(lens, near_mm: float, far_mm: float, coc_um: float) -> dict:
     """Fig. 2's columns plus the sweep's end positions and the normal camera's DOF."""
+    from pipeline.core import optics
+
     translation = optics.sweep_translation(lens.focal_length_mm, near_mm, far_mm)
     start = optics.image_distance(lens.focal_length_mm, far_mm)
     mid_focus = optics.focus_distance(lens.focal_length_mm, start + translation / 2)
@@ -54,10 +57,13 @@ def sweep_geometry(lens, near_mm: float, far_mm: float, coc_um: float) -> dict:
 
 
 def run(args: argparse.Namespace) -> int:
+    from pipeline.commands import print_json
+    from pipeline.io.profiles import load_lens
+
     lens = load_lens(args.lens)
-    if (args.near is None) != (args.far is None):
-        raise ValueError("give both --near and --far (mm), or neither for Fig. 2's ranges")
-    ranges = FIG2_RANGES if args.near is None else ((args.near, args.far),)
+    if (args.near_mm is None) != (args.far_mm is None):
+        raise ValueError("give both --near-mm and --far-mm, or neither for Fig. 2's ranges")
+    ranges = FIG2_RANGES if args.near_mm is None else ((args.near_mm, args.far_mm),)
     rows = [sweep_geometry(lens, near, far, args.coc_um) for near, far in ranges]
     if args.json:
         print_json({"lens": lens.name, "rows": rows})

@@ -14,11 +14,7 @@ import logging
 import sys
 import time
 
-from pipeline.commands import print_json
-from pipeline.commands.stack import add_processing_options
-from pipeline.workflow.ledger import Ledger, LockedError
-from pipeline.workflow.run import RunSummary, run_every, run_workflow
-from pipeline.workflow.schema import load_workflow, parse_interval
+from pipeline.commands import _flags, print_json
 
 log = logging.getLogger(__name__)
 
@@ -39,14 +35,19 @@ def register(subparsers) -> None:
     run.add_argument("file", help="workflow file (TOML)")
     run.add_argument(
         "--every",
-        help="repeat every INTERVAL (e.g. 15m, 1h); default: the "
-        "workflow's [schedule] every with --scheduled, else run once",
+        metavar="INTERVAL",
+        help="repeat every INTERVAL (e.g. 15m, 1h) (default: the "
+        "workflow's [schedule] every with --scheduled, else run once)",
     )
     run.add_argument(
         "--scheduled", action="store_true", help="loop on the workflow's [schedule] every"
     )
     run.add_argument("--runs", type=int, help="with --every: stop after this many runs")
-    run.add_argument("--concurrency", type=int, help="stacks in flight (bounds memory)")
+    run.add_argument(
+        "--concurrency",
+        type=int,
+        help="stacks in flight, bounds memory (default: the workflow file's)",
+    )
     run.add_argument(
         "--retry-failed",
         action="store_true",
@@ -57,11 +58,15 @@ def register(subparsers) -> None:
         action="store_true",
         help="list what would be processed and why; process nothing",
     )
-    add_processing_options(run)
-    run.set_defaults(func=run_command, method=None, align=None, tile_px=None)
+    processing = run.add_argument_group(
+        "processing (default: the workflow file's options, else those of flexdof stack)"
+    )
+    _flags.add_processing(processing, defaults=False)
+    _flags.add_json(run)
+    run.set_defaults(func=run_command)
     status = sub.add_parser("status", help="print the workflow's ledger")
     status.add_argument("file", help="workflow file (TOML)")
-    status.add_argument("--json", action="store_true", help="machine-readable output")
+    _flags.add_json(status)
     status.set_defaults(func=status_command)
 
 
@@ -146,7 +151,7 @@ class _Reporter:
             print(f"{head} FAILED {result['key']}: {result['error']}", file=sys.stderr)
 
 
-def _print_summary(summary: RunSummary, quiet: bool) -> None:
+def _print_summary(summary, quiet: bool) -> None:
     if not quiet:
         print(
             f"run {summary.run_id}: {len(summary.done)} done, {len(summary.failed)} failed, "
@@ -157,6 +162,10 @@ def _print_summary(summary: RunSummary, quiet: bool) -> None:
 
 
 def run_command(args: argparse.Namespace) -> int:
+    from pipeline.workflow.ledger import LockedError
+    from pipeline.workflow.run import run_every, run_workflow
+    from pipeline.workflow.schema import load_workflow, parse_interval
+
     workflow = load_workflow(args.file, overrides=_overrides(args))
     every = args.every
     if every is None and args.scheduled:
@@ -179,7 +188,7 @@ def run_command(args: argparse.Namespace) -> int:
 
     def once() -> bool:
         current = load_workflow(args.file, overrides=_overrides(args))
-        reporter = _Reporter(args.quiet)
+        reporter = _Reporter(args.quiet or args.json)
         with reporter.session():
             summary = run_workflow(
                 current,
@@ -188,7 +197,19 @@ def run_command(args: argparse.Namespace) -> int:
                 on_result=reporter.result,
                 on_progress=reporter.progress,
             )
-        if not args.dry_run:
+        if args.json:
+            print_json(
+                {
+                    "run": summary.run_id,
+                    "planned": summary.planned,
+                    "dry_run": args.dry_run,
+                    "done": summary.done,
+                    "failed": [{"stack": k, "error": e} for k, e in summary.failed],
+                    "up_to_date": summary.skipped,
+                    "seconds": summary.seconds,
+                }
+            )
+        elif not args.dry_run:
             _print_summary(summary, args.quiet)
         status[0] = 0 if summary.ok else EXIT_FAILED
         return summary.ok
@@ -219,6 +240,9 @@ def _when(stamp: float | None) -> str:
 
 
 def status_command(args: argparse.Namespace) -> int:
+    from pipeline.workflow.ledger import Ledger
+    from pipeline.workflow.schema import load_workflow
+
     workflow = load_workflow(args.file)
     if not workflow.ledger_path.is_file():
         print(f"{workflow.name}: no runs yet (no ledger at {workflow.ledger_path})")

@@ -16,7 +16,32 @@ from pathlib import Path
 from pipeline.core.lens import Lens, _where
 from pipeline.errors import InputError
 
-PROFILE_DIR = Path(__file__).resolve().parents[2] / "lens_profiles"
+_PACKAGE = Path(__file__).resolve().parents[1]
+# In a source checkout (and an editable install) the data sits at the top of the repository;
+# a wheel carries the same folders as pipeline/_data/<name> (pyproject.toml maps them).
+_SHIPPED = {
+    "lens_profiles": ("_data/lens_profiles", "../lens_profiles"),
+    "sample": ("_data/motorcycle", "../stacks/motorcycle"),
+}
+
+
+def shipped(name: str) -> Path:
+    """Where the data shipped with flexdof lives: ``"lens_profiles"`` or ``"sample"``.
+
+    The one lookup for both a wheel install (``pipeline/_data/...``) and a checkout
+    (``lens_profiles/``, ``stacks/motorcycle/``).
+
+    >>> (shipped("sample") / "stack.toml").is_file()
+    True
+    """
+    for relative in _SHIPPED[name]:
+        candidate = (_PACKAGE / relative).resolve()
+        if candidate.is_dir():
+            return candidate
+    raise InputError(f"the shipped {name} are missing from this install ({_PACKAGE})")
+
+
+PROFILE_DIR = shipped("lens_profiles")
 
 
 # TOML schema: table -> {key: Lens field}; required keys are marked True.
@@ -44,7 +69,7 @@ _SCHEMA: dict[str | None, dict[str, tuple[str, bool]]] = {
 
 
 def available_lenses() -> list[str]:
-    """Names (file stems) of the profiles shipped in ``lens_profiles/``."""
+    """Names (file stems) of the profiles shipped in ``lens_profiles/`` (see :func:`shipped`)."""
     return sorted(p.stem for p in PROFILE_DIR.glob("*.toml"))
 
 
@@ -58,13 +83,13 @@ def resolve_lens_path(name_or_path: str | Path, *, base_dir: Path | None = None)
         if not candidate.is_file():
             raise InputError(f"lens profile {text!r}: no such file ({candidate})")
         return candidate
-    shipped = PROFILE_DIR / f"{text}.toml"
-    if not shipped.is_file():
+    profile = PROFILE_DIR / f"{text}.toml"
+    if not profile.is_file():
         raise InputError(
             f"unknown lens profile {text!r}: use a file path or one of "
             f"{', '.join(available_lenses())}"
         )
-    return shipped
+    return profile
 
 
 def load_lens(name_or_path: str | Path, *, base_dir: Path | None = None) -> Lens:

@@ -127,20 +127,54 @@ def read_rows_csv(path: Path) -> np.ndarray:
     return np.array(pairs)
 
 
+# An --in-focus end this close (relative, in depth) beyond the stack's end frame is taken
+# as that frame: e.g. 2110 for a stack whose nearest frame is at 2110.4 mm.
+RANGE_TOLERANCE = 0.01
+
+
+def _within_stack(depth_mm: float, stack_near: float, stack_far: float) -> float | None:
+    """``depth_mm`` clamped to [stack_near, stack_far] within :data:`RANGE_TOLERANCE`;
+    ``None`` when it is farther outside."""
+    if stack_near <= depth_mm <= stack_far:
+        return depth_mm
+    if stack_near * (1 - RANGE_TOLERANCE) <= depth_mm < stack_near:
+        return stack_near
+    if stack_far < depth_mm <= stack_far * (1 + RANGE_TOLERANCE):
+        return stack_far
+    return None
+
+
 def frame_weights(target: DofTarget, lens: Lens, positions: np.ndarray, rows: int) -> np.ndarray:
     """(frames,) weights for a discontinuous DOF, (rows, frames) for a tilted or non-planar one.
 
-    Depth ranges become image-distance ranges by the lens law (Eq. 1); rows that ask
+    Depth ranges become image-distance ranges by the lens law (Eq. 1); a range end within
+    1% beyond the stack's end is clamped to it, one farther out is an error. Rows that ask
     for focus beyond the stack use its nearest end frame (a warning says how many).
     """
     f = lens.focal_length_mm
     if target.kind == "in-focus":
         fractions = list(target.fractions or [1.0] * len(target.in_focus))
-        image_ranges = [
-            (float(optics.image_distance(f, far)), float(optics.image_distance(f, near)))
-            for near, far in target.in_focus
-        ]
-        return weights.discontinuous_weights(positions, image_ranges, fractions)
+        stack_near = float(optics.focus_distance(f, float(positions.max())))
+        stack_far = float(optics.focus_distance(f, float(positions.min())))
+        image_ranges = []
+        for near, far in target.in_focus:
+            near_in, far_in = (_within_stack(d, stack_near, stack_far) for d in (near, far))
+            if near_in is None or far_in is None:
+                raise InputError(
+                    f"--in-focus {near:g}:{far:g}: outside the stack's focus range "
+                    f"{stack_near:.1f}:{stack_far:.1f} mm (its nearest and farthest frames); "
+                    "give ranges within it"
+                )
+            if (near_in, far_in) != (near, far):
+                log.info(
+                    "--in-focus %g:%g: clamped to %.1f:%.1f mm (the stack's end frames)",
+                    near, far, near_in, far_in,
+                )
+            image_ranges.append(
+                (float(optics.image_distance(f, far_in)), float(optics.image_distance(f, near_in)))
+            )
+        # every range is within the stack now (up to rounding of the lens law)
+        return weights.discontinuous_weights(positions, image_ranges, fractions, outside="clamp")
     if target.kind == "tilt":
         offsets = motion.row_offsets_mm(rows, lens.sensor_height_mm)
         p_rows = motion.tilted_row_image_distances(f, target.tilt_deg, target.at_mm, offsets)

@@ -42,7 +42,7 @@ scaled (cubic spline). Noise: Poisson shot noise plus Gaussian read noise in ele
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import ndimage, signal
@@ -61,6 +61,7 @@ def render(
     plan_: Plan | None = None,
     tolerance: float = 1e-3,
     seed: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
 ) -> np.ndarray:
     """Render one capture of ``scene`` with ``camera``, following a :class:`Plan`.
 
@@ -73,6 +74,8 @@ def render(
     tolerance : float
     seed : int, optional
         Seed of the noise (only used when the camera has an exposure).
+    progress : callable(done, total), optional
+        Called after each rendered step of the plan (bands x time steps).
 
     Returns
     -------
@@ -108,6 +111,7 @@ def render(
     channels = scene.surfaces[0].radiance.shape[2]
     out = np.zeros((rows, cols, channels), dtype=scene.dtype)
     cache = _KernelCache(p.lens, p.model, None)  # type: ignore[arg-type]
+    total, done = sum(len(band.steps) for band in p.bands), 0
     for band in p.bands:
         image = np.zeros_like(out)
         for step in band.steps:
@@ -115,6 +119,9 @@ def render(
             if step.scale != 1.0:
                 sub = _scale(sub, step.scale)
             image += np.asarray(step.weight, dtype=out.dtype) * sub
+            done += 1
+            if progress is not None:
+                progress(done, total)
         out[band.row_start : band.row_stop] = image[band.row_start : band.row_stop]
     if p.noise is not None:
         out = _add_noise(out, p.noise, seed)

@@ -19,8 +19,7 @@ from pipeline.jobs.options import StackOptions
 from pipeline.jobs.stack import read_previews
 from pipeline.parallel import accumulate
 
-REPO = Path(__file__).resolve().parents[3]
-MOTORCYCLE = REPO / "stacks" / "motorcycle"
+MOTORCYCLE = profiles.shipped("sample")
 REFERENCE_THETA_ORDER = 64
 SEC41_LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 NEAR_MM, FAR_MM = 450.0, 2000.0
