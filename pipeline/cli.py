@@ -50,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("-q/--quiet and -v/--verbose exclude each other")
     configure_logging(args.quiet, args.verbose)
     try:
+        from pipeline.io.write import install_signal_cleanup  # imports numpy: not for --help
+
+        install_signal_cleanup()  # SIGTERM (kill, systemctl stop) cleans up like Ctrl-C
         return int(args.func(args) or 0)
     except BrokenPipeError:  # output piped into e.g. `head`
         return 0

@@ -306,3 +306,32 @@ def test_file_groups_never_take_the_workflows_own_outputs(tmp_path):
     assert run_workflow(load_workflow(flow)).done == [".#abc"]
     assert (tmp_path / "abc_edof.png.json").is_file()
     assert plan_of(flow) == {}  # abc_edof.png is not a frame of a new stack "abc_edof"
+
+
+def test_dry_run_prints_its_plan_to_stdout_even_when_quiet(tmp_path, capsys):
+    from pipeline.cli import main
+
+    make_synthetic_stack(tmp_path / "stacks" / "a", seed=1, frames=3, shape=(40, 48))
+    path = tmp_path / "wf.toml"
+    path.write_text(
+        '[[inputs]]\ndirectories = "stacks/*"\n[options]\nblur_span_px = 5.0\n'
+        '[output]\ndirectory = "out"\n'
+    )
+    assert main(["workflow", "run", str(path), "--dry-run", "-q"]) == 0
+    captured = capsys.readouterr()
+    assert "1 stack(s) would process" in captured.out and "a" in captured.out
+    assert "would process" not in captured.err
+    assert not list((tmp_path / "out").glob("*.tif"))  # a dry run writes no result
+
+
+def test_every_with_an_empty_drop_folder_is_nothing_to_do_yet(tmp_path):
+    from pipeline.cli import main
+
+    (tmp_path / "drop").mkdir()
+    path = tmp_path / "wf.toml"
+    path.write_text(
+        '[[inputs]]\ndirectories = "drop/*"\n[options]\nblur_span_px = 5.0\n'
+        '[output]\ndirectory = "out"\n'
+    )
+    assert main(["-q", "workflow", "run", str(path), "--every", "1s", "--runs", "1"]) == 0
+    assert main(["-q", "workflow", "run", str(path)]) == 2  # a one-off run: still an error

@@ -230,6 +230,12 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         help="blur (px) of a point focused at one end of the stack seen at the other end "
         "(default: from the lens profile, else measured from the frames)",
     )
+    parser.add_argument(
+        "--max-pixels",
+        type=int,
+        metavar="N",
+        help="refuse frames larger than this, before decoding them (default: 200000000)",
+    )
     add_compute(parser)
 
 
@@ -246,4 +252,5 @@ def stack_options(args: argparse.Namespace):
         blur_span_px=getattr(args, "blur_span_px", None),
         tile_px=getattr(args, "tile_px", None) or defaults.tile_px,
         save_kernel=getattr(args, "save_kernel", None),
+        max_pixels=getattr(args, "max_pixels", None) or defaults.max_pixels,
     )

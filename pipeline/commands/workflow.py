@@ -89,8 +89,8 @@ def _overrides(args: argparse.Namespace) -> dict:
 class _Reporter:
     """Whole-batch and per-stack progress: rich bars on a terminal, else log lines."""
 
-    def __init__(self, quiet: bool) -> None:
-        self.quiet = quiet
+    def __init__(self, quiet: bool, dry_run: bool = False) -> None:
+        self.quiet, self.dry_run = quiet, dry_run
         self.bars = None
         self.total = 0
         self.count = 0
@@ -118,13 +118,12 @@ class _Reporter:
         self.total = len(todo)
         if self.bars is not None:
             self.bars.update(self.batch, total=len(todo))
-        if not self.quiet:
-            print(
-                f"{len(todo)} stack(s) to process, {up_to_date} up to date or not retried",
-                file=sys.stderr,
-            )
+        if not self.quiet or self.dry_run:
+            out = sys.stdout if self.dry_run else sys.stderr  # a dry run's plan is its result
+            verb = "would process" if self.dry_run else "to process"
+            print(f"{len(todo)} stack(s) {verb}, {up_to_date} up to date or not retried", file=out)
             for stack, reason in todo:
-                print(f"  {stack.id}: {reason}", file=sys.stderr)
+                print(f"  {stack.id}: {reason}", file=out)
 
     def progress(self, key: str, stage: str, done: int, total: int) -> None:
         if self.bars is None:
@@ -188,7 +187,7 @@ def run_command(args: argparse.Namespace) -> int:
 
     def once() -> bool:
         current = load_workflow(args.file, overrides=_overrides(args))
-        reporter = _Reporter(args.quiet or args.json)
+        reporter = _Reporter(args.quiet or args.json, dry_run=args.dry_run and not args.json)
         with reporter.session():
             summary = run_workflow(
                 current,
@@ -196,6 +195,7 @@ def run_command(args: argparse.Namespace) -> int:
                 on_plan=reporter.plan,
                 on_result=reporter.result,
                 on_progress=reporter.progress,
+                empty_ok=True if interval is not None else None,
             )
         if args.json:
             print_json(
