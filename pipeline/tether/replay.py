@@ -61,6 +61,7 @@ from pipeline.tether.codes import (
     operation_name,
     response_name,
 )
+from pipeline.tether.host_backend import TIMEOUT, HostBackend
 from pipeline.tether.ptp import HEADER, DeviceInfo, ProtocolError
 
 __all__ = [
@@ -74,7 +75,6 @@ __all__ = [
     "parse_hexdumps",
 ]
 
-_TIMEOUT = (-7, errno.ETIMEDOUT)  # LIBUSB_ERROR_TIMEOUT
 _EPIPE = (-9, errno.EPIPE)  # LIBUSB_ERROR_PIPE
 _ROW_BYTES = 16
 
@@ -639,7 +639,7 @@ class ReplayCamera:
     def host_read(self, size: int) -> bytes:
         """Bulk-in: the queued data/response containers, then a zero-length packet if due."""
         if not (self._out or self._zlp_due):
-            raise usb.core.USBTimeoutError("Operation timed out", *_TIMEOUT)
+            raise usb.core.USBTimeoutError("Operation timed out", *TIMEOUT)
         if not self._out:
             self._zlp_due = False
             return b""
@@ -674,7 +674,7 @@ class ReplayCamera:
             )
 
 
-class ReplayBackend(usb.backend.IBackend):
+class ReplayBackend(HostBackend):
     """A pyusb backend with one :class:`ReplayCamera`.
 
     Parameters
@@ -707,9 +707,6 @@ class ReplayBackend(usb.backend.IBackend):
     def enumerate_devices(self):
         return [self.camera]
 
-    def get_parent(self, dev):
-        return None
-
     def get_device_descriptor(self, dev):
         return SimpleNamespace(
             bLength=18, bDescriptorType=1, bcdUSB=0x0200, bDeviceClass=0, bDeviceSubClass=0,
@@ -719,65 +716,9 @@ class ReplayBackend(usb.backend.IBackend):
             port_number=1, port_numbers=(1,), speed=3,
         )
 
-    def get_configuration_descriptor(self, dev, config):
-        if config != 0:
-            raise IndexError(f"invalid configuration index {config}")
-        return SimpleNamespace(
-            bLength=9, bDescriptorType=2, wTotalLength=39, bNumInterfaces=1,
-            bConfigurationValue=1, iConfiguration=0, bmAttributes=0xC0, bMaxPower=50,
-            extra_descriptors=[],
-        )
-
-    def get_interface_descriptor(self, dev, intf, alt, config):
-        if intf != 0 or alt != 0:
-            raise IndexError(f"invalid interface {intf}/{alt}")
-        return SimpleNamespace(
-            bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0,
-            bNumEndpoints=3, bInterfaceClass=6, bInterfaceSubClass=1, bInterfaceProtocol=1,
-            iInterface=0, extra_descriptors=[],
-        )
-
-    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
+    def endpoints(self, dev):
         bulk_in, bulk_out, intr = dev.recording.endpoints
-        address, attributes, size = ((bulk_in, 2, dev.packet_size), (bulk_out, 2, dev.packet_size),
-                                     (intr, 3, 8))[ep]
-        return SimpleNamespace(
-            bLength=7, bDescriptorType=5, bEndpointAddress=address, bmAttributes=attributes,
-            wMaxPacketSize=size, bInterval=0 if attributes == 2 else 10, bRefresh=0,
-            bSynchAddress=0, extra_descriptors=[],
-        )
-
-    def open_device(self, dev):
-        return dev
-
-    def close_device(self, dev_handle):
-        return None
-
-    def set_configuration(self, dev_handle, config_value):
-        return None
-
-    def get_configuration(self, dev_handle):
-        return 1
-
-    def claim_interface(self, dev_handle, intf):
-        return None
-
-    def release_interface(self, dev_handle, intf):
-        return None
-
-    def is_kernel_driver_active(self, dev_handle, intf):
-        return False
-
-    def bulk_write(self, dev_handle, ep, intf, data, timeout):
-        return dev_handle.host_write(bytes(data))
-
-    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
-        chunk = dev_handle.host_read(len(buff) * buff.itemsize)
-        buff[: len(chunk)] = type(buff)(buff.typecode, chunk)
-        return len(chunk)
-
-    def intr_read(self, dev_handle, ep, intf, buff, timeout):
-        raise usb.core.USBTimeoutError("Operation timed out", *_TIMEOUT)
+        return ((bulk_in, 2, dev.packet_size), (bulk_out, 2, dev.packet_size), (intr, 3, 8))
 
     def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
         if bmRequestType & 0x60 == 0x20:  # class request to the interface

@@ -44,11 +44,11 @@ from pipeline.tether.clock import VirtualClock
 from pipeline.tether.emulated import layouts
 from pipeline.tether.emulated.personalities import CANON, NIKON, Personality, personality
 from pipeline.tether.emulated.scene import encode_jpeg, encode_tiff16, render_frame
+from pipeline.tether.host_backend import TIMEOUT, HostBackend
 
 BULK_IN, BULK_OUT, INTR_IN = 0x81, 0x02, 0x83
 _ENODEV = (-4, errno.ENODEV)  # LIBUSB_ERROR_NO_DEVICE
 _EPIPE = (-9, errno.EPIPE)  # LIBUSB_ERROR_PIPE
-_TIMEOUT = (-7, errno.ETIMEDOUT)  # LIBUSB_ERROR_TIMEOUT
 
 # numbers spelled out here (ISO 15740, libgphoto2 ptp.h) rather than imported from the host
 OK, GENERAL_ERROR, SESSION_NOT_OPEN = 0x2001, 0x2002, 0x2003
@@ -245,7 +245,7 @@ class EmulatedCamera:
         if self._stalled:
             raise usb.core.USBError("Pipe error", *_EPIPE)
         if self._hanging is not None or not self._packets:
-            raise usb.core.USBTimeoutError("Operation timed out", *_TIMEOUT)
+            raise usb.core.USBTimeoutError("Operation timed out", *TIMEOUT)
         if size % self.p.packet_size:
             raise AssertionError(f"bulk-in read of {size} bytes is not a multiple of the packet")
         out = bytearray()
@@ -644,7 +644,7 @@ class OtherDevice:
     address: int = 1
 
 
-class EmulatedBackend(usb.backend.IBackend):
+class EmulatedBackend(HostBackend):
     """A pyusb backend whose devices are :class:`EmulatedCamera` (and :class:`OtherDevice`).
 
     :attr:`clock` is the first camera's clock, for the host to share.
@@ -659,9 +659,6 @@ class EmulatedBackend(usb.backend.IBackend):
     def enumerate_devices(self):
         return [d for d in self.devices if getattr(d, "plugged", True)]
 
-    def get_parent(self, dev):
-        return None
-
     def get_device_descriptor(self, dev):
         cam = isinstance(dev, EmulatedCamera)
         return SimpleNamespace(
@@ -674,67 +671,19 @@ class EmulatedBackend(usb.backend.IBackend):
             address=dev.address, port_number=1, port_numbers=(1,), speed=3,
         )
 
-    def get_configuration_descriptor(self, dev, config):
-        if config != 0:
-            raise IndexError(f"invalid configuration index {config}")
-        return SimpleNamespace(
-            bLength=9, bDescriptorType=2, wTotalLength=39,
-            bNumInterfaces=1 if isinstance(dev, EmulatedCamera) else 0, bConfigurationValue=1,
-            iConfiguration=0, bmAttributes=0xC0, bMaxPower=50, extra_descriptors=[],
-        )
+    def has_interface(self, dev) -> bool:
+        return isinstance(dev, EmulatedCamera)
 
-    def get_interface_descriptor(self, dev, intf, alt, config):
-        if not isinstance(dev, EmulatedCamera) or intf != 0 or alt != 0:
-            raise IndexError(f"invalid interface {intf}/{alt}")
-        return SimpleNamespace(
-            bLength=9, bDescriptorType=4, bInterfaceNumber=0, bAlternateSetting=0,
-            bNumEndpoints=3, bInterfaceClass=6, bInterfaceSubClass=1, bInterfaceProtocol=1,
-            iInterface=0, extra_descriptors=[],
-        )
+    def endpoints(self, dev):
+        return ((BULK_IN, 2, dev.p.packet_size), (BULK_OUT, 2, dev.p.packet_size), (INTR_IN, 3, 8))
 
-    def get_endpoint_descriptor(self, dev, ep, intf, alt, config):
-        address, attributes, size = ((BULK_IN, 2, dev.p.packet_size),
-                                     (BULK_OUT, 2, dev.p.packet_size), (INTR_IN, 3, 8))[ep]
-        return SimpleNamespace(
-            bLength=7, bDescriptorType=5, bEndpointAddress=address, bmAttributes=attributes,
-            wMaxPacketSize=size, bInterval=0 if attributes == 2 else 10, bRefresh=0,
-            bSynchAddress=0, extra_descriptors=[],
-        )
+    def check(self, dev_handle) -> None:
+        dev_handle._alive()
 
     def open_device(self, dev):
         if not getattr(dev, "plugged", True):
             raise usb.core.USBError("No such device", *_ENODEV)
         return dev
-
-    def close_device(self, dev_handle):
-        return None
-
-    def set_configuration(self, dev_handle, config_value):
-        dev_handle._alive()
-
-    def get_configuration(self, dev_handle):
-        return 1
-
-    def claim_interface(self, dev_handle, intf):
-        dev_handle._alive()
-
-    def release_interface(self, dev_handle, intf):
-        dev_handle._alive()
-
-    def is_kernel_driver_active(self, dev_handle, intf):
-        return False
-
-    def bulk_write(self, dev_handle, ep, intf, data, timeout):
-        return dev_handle.host_write(bytes(data))
-
-    def bulk_read(self, dev_handle, ep, intf, buff, timeout):
-        chunk = dev_handle.host_read(len(buff) * buff.itemsize)
-        buff[: len(chunk)] = type(buff)(buff.typecode, chunk)
-        return len(chunk)
-
-    def intr_read(self, dev_handle, ep, intf, buff, timeout):
-        dev_handle._alive()
-        raise usb.core.USBTimeoutError("Operation timed out", *_TIMEOUT)
 
     def ctrl_transfer(self, dev_handle, bmRequestType, bRequest, wValue, wIndex, data, timeout):
         dev_handle._alive()
