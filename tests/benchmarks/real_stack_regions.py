@@ -6,8 +6,9 @@
 For each stack: runs ``flexdof stack`` as a user would (or takes ``--result
 NAME=FILE``, whose ``FILE.json`` sidecar must sit next to it), warps every frame
 into the result's geometry with the sidecar's homographies, registers the peers'
-results to that geometry (SIFT + RANSAC homography refined by ECC; focus-stack
-crops and rescales its output), splits the common area into a 3x3 grid and
+results to that geometry (SIFT + RANSAC homography refined by ECC against a
+focus-selected composite of those frames; focus-stack crops and rescales its
+output), splits the common area into a 3x3 grid and
 measures per region sharpness, halo, haze and noise (see ``region_measures.py``
 for what they are and why they cannot be gamed) of flexdof, focus-stack,
 enfuse (``align_image_stack -m`` + ``enfuse --contrast-weight=1 --hard-mask``,
@@ -247,6 +248,14 @@ def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
         valid &= cover
     methods = {"flexdof": flex}
     registration = {}
+    # peers are registered to a focus-selected composite of the aligned frames, not to the
+    # result under test, so their placement does not depend on the method being judged
+    energy = [
+        cv2.GaussianBlur(cv2.Laplacian(f.mean(axis=-1), cv2.CV_32F) ** 2, (0, 0), 4.0)
+        for f in frames
+    ]
+    choice = np.argmax(np.stack(energy), axis=0)
+    composite = np.take_along_axis(np.stack(frames), choice[None, ..., None], axis=0)[0]
     peers = {
         "focus-stack": FOCUS_STACK / f"{name}.png",
         "enfuse": run_enfuse(name, STACKS[name], work),
@@ -255,7 +264,7 @@ def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
         if path is None or not Path(path).exists():
             continue
         image = read_srgb(Path(path))
-        h, cc = register(image, flex)
+        h, cc = register(image, composite)
         warped, cover = warp(image, h, shape)
         methods[peer] = warped
         valid &= cover
