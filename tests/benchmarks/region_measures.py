@@ -9,7 +9,7 @@ measures, each judged per region of a 3x3 grid, lower is better for all four:
   composite of the frames (per pixel the frame with the most Laplacian energy, so
   fine texture that is in focus in any frame is judged, not only the edges that
   survive in the frames' mean). The width is the 10-90% rise of
-  :mod:`pipeline.quality` (plateaus: medians far from the edge, so noise cannot
+  :mod:`pipeline.core.quality` (plateaus: medians far from the edge, so noise cannot
   shrink it), extended over any lobe right outside the rise that leaves the
   frames' range: overshoot and ringing that no frame supports widen an edge
   instead of steepening it (the plain width reads unsharp masking as sharpening;
