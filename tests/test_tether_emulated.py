@@ -266,3 +266,22 @@ def test_tethered_sweep_processes_with_a_calibrated_lens(tmp_path, capsys):
     calibrated.write_text(lens_to_toml(dataclasses.replace(lens, step_image_distance_um=5.0)))
     assert cli.main(["-q", "stack", str(shots), "-o", str(out), "--lens", str(calibrated)]) == 0
     assert out.is_file()
+
+
+def test_tether_commands_speak_the_cli_vocabulary(tmp_path, capsys):
+    """--json on every tether action, --exposure-s like the other commands."""
+    import json
+
+    from pipeline.cli import main
+
+    assert main(["tether", "stack", "--emulate", "canon", "-o", str(tmp_path / "s"),
+                 "--frames", "3", "--step", "10", "--settle-ms", "0", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out) == {"output": str(tmp_path / "s"), "frames": 3}
+    assert main(["tether", "sweep", "--emulate", "canon", "--personality", "eos-sweep",
+                 "-o", str(tmp_path / "w"), "--steps", "40", "--exposure-s", "5", "--json"]) == 0
+    sweep = json.loads(capsys.readouterr().out)
+    assert sweep["fell_back"] is False and sweep["drive_commands"] == 40
+    assert main(["tether", "list", "--emulate", "nikon", "--json"]) == 0
+    listed = json.loads(capsys.readouterr().out)
+    assert [c["vendor"] for c in listed["cameras"]] == ["nikon"]
+    assert listed["cameras"][0]["stack"] is True and listed["cameras"][0]["sweep"] is False

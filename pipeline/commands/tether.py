@@ -7,6 +7,8 @@ import logging
 import math
 from pathlib import Path
 
+from pipeline.commands import print_json
+from pipeline.commands._flags import add_json
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -18,6 +20,7 @@ def register(subparsers) -> None:
     sub.required = True
 
     def common(p):
+        add_json(p)
         p.add_argument("--emulate", choices=("canon", "nikon", "none"),
                        help="use the built-in emulated camera instead of USB (none: a bus "
                             "without a camera)")
@@ -32,9 +35,10 @@ def register(subparsers) -> None:
     p = sub.add_parser("stack", help="capture a focal stack by driving the focus")
     common(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output directory")
-    p.add_argument("--frames", required=True, type=int)
+    p.add_argument("--frames", required=True, type=int, help="number of frames to capture")
     p.add_argument("--step", required=True, type=int, help="drive steps between frames")
-    p.add_argument("--direction", choices=("near", "far"), default="far")
+    p.add_argument("--direction", choices=("near", "far"), default="far",
+                   help="which way the focus is driven from the first frame")
     p.add_argument("--settle-ms", type=float, default=200.0, help="wait after each drive")
     p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3),
                    help="Canon DriveLens step size (1 fine .. 3 coarse)")
@@ -49,18 +53,22 @@ def register(subparsers) -> None:
     common(p)
     p.add_argument("-o", "--output", required=True, type=Path, help="output directory")
     p.add_argument("--steps", required=True, type=int, help="total drive steps in the exposure")
-    p.add_argument("--exposure", required=True, type=float, help="exposure time, s")
-    p.add_argument("--direction", choices=("near", "far"), default="far")
+    p.add_argument("--exposure-s", "--exposure", dest="exposure", required=True, type=float,
+                   metavar="S", help="exposure time, s")
+    p.add_argument("--direction", choices=("near", "far"), default="far",
+                   help="which way the focus is driven during the exposure")
     p.add_argument("--period-ms", type=float, default=50.0, help="time between drive commands")
     p.add_argument("--fallback-step", type=int, default=10,
                    help="frame spacing of the dense stack used if the camera refuses")
-    p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3))
+    p.add_argument("--drive-size", type=int, default=1, choices=(1, 2, 3),
+                   help="focus-drive command size (must match the calibration's)")
     p.add_argument("--drive-pace-ms", type=float, help="least time between drive commands")
     p.add_argument("--lens", help="lens profile name or path (required for a real camera)")
     p.set_defaults(func=_sweep)
 
     p = sub.add_parser("calibrate", help="measure step -> image distance from a captured stack")
     p.add_argument("stack", type=Path, help="stack directory with stack.toml (focus_step)")
+    add_json(p)
     p.add_argument("--lens", required=True, help="lens profile to extend")
     p.add_argument("-o", "--output", required=True, type=Path, help="profile TOML to write")
     p.add_argument("--reference-focus-distance-mm", type=float, default=math.inf,
@@ -113,9 +121,11 @@ def _list(args) -> int:
 
     backend = _backend(args)
     cameras, seen = find_cameras(backend)
-    print(f"USB devices: {len(seen)}; PTP cameras: {len(cameras)}")
+    say = (lambda *_: None) if args.json else print
+    say(f"USB devices: {len(seen)}; PTP cameras: {len(cameras)}")
     if not cameras:
-        print(no_camera_message(seen))
+        say(no_camera_message(seen))
+    found = []
     for device in cameras:
         session = PtpSession(UsbTransport(device), clock=getattr(backend, "clock", SYSTEM_CLOCK))
         try:
@@ -123,10 +133,16 @@ def _list(args) -> int:
             cap = body_capability(info)  # the decision the stack and sweep commands apply
             stack = "yes" if cap.stack else f"no ({cap.stack_reason})"
             sweep = "yes" if cap.sweep else f"no ({cap.sweep_reason})"
-            print(f"{device.idVendor:04x}:{device.idProduct:04x}  {info.manufacturer} "
-                  f"{info.model}  vendor={session.vendor}  focal stack: {stack}  sweep: {sweep}")
+            say(f"{device.idVendor:04x}:{device.idProduct:04x}  {info.manufacturer} "
+                f"{info.model}  vendor={session.vendor}  focal stack: {stack}  sweep: {sweep}")
+            found.append({"usb_id": f"{device.idVendor:04x}:{device.idProduct:04x}",
+                          "manufacturer": info.manufacturer, "model": info.model,
+                          "vendor": session.vendor, "stack": cap.stack, "sweep": cap.sweep,
+                          "stack_reason": cap.stack_reason, "sweep_reason": cap.sweep_reason})
         finally:
             session.close()
+    if args.json:
+        print_json({"usb_devices": len(seen), "cameras": found})
     return 0
 
 
@@ -137,7 +153,10 @@ def _stack(args) -> int:
     lens, _profile = _lens(args)
     with connect(_backend(args), drive_size=args.drive_size, drive_pace_s=_pace(args)) as camera:
         result = capture_stack(camera, args.output, plan, lens=lens)
-    print(f"{len(result.frames)} frames and stack.toml written to {args.output}")
+    if args.json:
+        print_json({"output": str(args.output), "frames": len(result.frames)})
+    else:
+        print(f"{len(result.frames)} frames and stack.toml written to {args.output}")
     return 0
 
 
@@ -164,7 +183,10 @@ def _sweep(args) -> int:
                  drive_pace_s=_pace(args), bulb=True) as camera:
         result = capture_sweep(camera, args.output, schedule, args.exposure, lens=lens_name,
                                fallback_step=args.fallback_step)
-    if result.fell_back:
+    if args.json:
+        print_json({"output": str(args.output), "fell_back": result.fell_back,
+                    "drive_commands": len(result.drive_log), "message": result.message})
+    elif result.fell_back:
         print(result.message)
     else:
         print(f"sweep of {args.steps} steps in {args.exposure} s written to {args.output} "
@@ -182,6 +204,11 @@ def _calibrate(args) -> int:
                           reference_focus_distance_mm=args.reference_focus_distance_mm)
     calibrated = dataclasses.replace(lens, step_image_distance_um=cal.step_image_distance_um)
     write_atomic(args.output, lens_to_toml(calibrated))
+    if args.json:
+        print_json({"output": str(args.output), "step_image_distance_um":
+                    cal.step_image_distance_um, "rms_residual_um": cal.rms_residual_um,
+                    "frames": len(cal.steps)})
+        return 0
     print(f"{cal.step_image_distance_um:.4g} um of image distance per step "
           f"(rms residual {cal.rms_residual_um:.3g} um, {len(cal.steps)} frames); "
           f"written to {args.output}")

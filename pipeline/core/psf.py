@@ -289,7 +289,7 @@ def _resolve_size(size: int | None, max_blur_px: float, model: str, g: float) ->
         if size > MAX_KERNEL_SIZE:
             raise InputError(
                 f"the blur reaches {max_blur_px:.0f} px, which needs a {size} px kernel "
-                f"(> {MAX_KERNEL_SIZE}); pass size= to truncate it"
+                f"(> {MAX_KERNEL_SIZE}); pass a smaller size (--size) to truncate it"
             )
         return size
     if (
@@ -299,6 +299,8 @@ def _resolve_size(size: int | None, max_blur_px: float, model: str, g: float) ->
         or size % 2 == 0
     ):
         raise InputError(f"size must be a positive odd integer, got {size!r}")
+    if size > MAX_KERNEL_SIZE:  # a 4097 px kernel already spans a 12-Mpx frame's width
+        raise InputError(f"size must be at most {MAX_KERNEL_SIZE} px, got {size}")
     return int(size)
 
 
