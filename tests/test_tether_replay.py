@@ -25,6 +25,7 @@ import usb.core
 from pipeline.tether.camera import camera_for
 from pipeline.tether.canon import CanonEOS, parse_events
 from pipeline.tether.capabilities import body_capability, device_info_from_listing
+from pipeline.tether.clock import VirtualClock
 from pipeline.tether.codes import OC, RC, CanonDPC, CanonEC, CanonOC
 from pipeline.tether.ptp import ObjectInfo
 from pipeline.tether.replay import (
@@ -59,7 +60,9 @@ def _session(recording, **camera_options):
     camera = ReplayCamera(recording, **camera_options)
     sleeps: list[float] = []
     device = usb.core.find(backend=ReplayBackend(camera))
-    session = PtpSession(UsbTransport(device), sleep=sleeps.append)
+    clock = VirtualClock()
+    clock.sleep = sleeps.append  # record the waits (PtpSession takes a clock since the rework)
+    session = PtpSession(UsbTransport(device), clock=clock)
     return session, camera, sleeps
 
 
