@@ -104,6 +104,12 @@ MUTANTS = {
         "            self.sleep(delay)\n        if check:",
         ["tests/test_issue11_kills.py::test_busy_retries_back_off_exponentially_to_the_cap"],
     ),
+    "read-noise-halved": (
+        "pipeline/core/simulate/render.py",
+        "rng.normal(0.0, exposure.read_noise_e, image.shape)",
+        "rng.normal(0.0, 0.5 * exposure.read_noise_e, image.shape)",
+        ["tests/test_noise_model.py"],
+    ),
     "ipsf-tiny-change": (
         "pipeline/core/psf.py",
         "closed = (b_hi - b_lo) >= SMALL_CHANGE_PX",
