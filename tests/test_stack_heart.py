@@ -234,3 +234,57 @@ def test_weighted_sum_graph_per_row_weights_and_identity_warps(tmp_path):
     )[0]
     ref = sum(r[:, None] * a for r, a in zip(rows, arrays))
     np.testing.assert_allclose(total, ref, rtol=1e-5, atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- details
+def test_focal_stack_psf_samples_33_positions_by_default():
+    x = np.array([0.0, 1.0, 2.0])
+    _, per = focal_stack_psf(x, np.full(3, 1 / 3), lambda p, s: 3.0 * np.abs(p - s))
+    assert per.shape[0] == 33
+
+
+def test_stack_kernel_summary_against_its_own_per_depth_kernels(lens):
+    from pipeline.core import spectra
+
+    p = np.array([optics.image_distance(12.5, u) for u in (2000.0, 1200.0, 800.0, 600.0)])
+    w = np.array([0.1, 0.4, 0.3, 0.2])
+    kernel, samples, summary = stack_kernel(p, w, lens=lens, absolute=True, blur_span_px=None)
+
+    def blur(pi, v):
+        return lens.aperture_mm * np.abs(v - pi) / v / lens.pixel_pitch_mm
+
+    _, per = focal_stack_psf(p, w, blur, size=kernel.shape[0])
+    assert samples.shape == (9, *kernel.shape)  # every 4th of 33
+    np.testing.assert_allclose(samples, per[::4], atol=1e-12)
+    spread = [spectra.dissimilarity(k, kernel) for k in per]
+    assert summary["depth_invariance_eq8"]["mean"] == pytest.approx(np.mean(spread), rel=1e-9)
+    assert summary["depth_invariance_eq8"]["max"] == pytest.approx(np.max(spread), rel=1e-9)
+    assert summary["size"] == kernel.shape[0]
+
+
+def test_no_eq6_comparison_without_a_range(lens):
+    p = np.full(3, optics.image_distance(12.5, 1000.0))
+    _, _, summary = stack_kernel(p, np.full(3, 1 / 3), lens=lens, absolute=True,
+                                 blur_span_px=None)
+    assert "dissimilarity" not in summary and summary["source"] == "stack-average"
+
+
+@pytest.mark.parametrize(("mix", "kept"), [(1.0, True), (0.5, False)])
+def test_wiener_options_keep_the_kernel_variance_only_for_a_large_spread(mix, kept):
+    from pipeline.core import spectra
+    from pipeline.core.stack_kernel import KERNEL_VARIANCE_SPREAD, wiener_options
+
+    kernel = supersampled_pillbox(5.0, 4)
+    other = supersampled_pillbox(4.6, 4)  # spread 0.134 (mix 1) and ~0.034 (mix 0.5)
+    samples = np.array([(1 - mix) * kernel + mix * other, kernel])
+    spread = np.mean([spectra.dissimilarity(k, kernel) for k in samples])
+    assert (spread > 0.1) == kept and KERNEL_VARIANCE_SPREAD == 0.1  # the case is as meant
+    out = wiener_options(kernel, samples)["kernel_samples"]
+    assert (out is samples) if kept else (out is None)
+    assert wiener_options(kernel)["kernel_samples"] is None
+
+
+def test_positions_with_a_repeated_scale_are_not_monotone():
+    s = np.array([1.0, 1.0, 1.0, 1.012, 1.0])  # steps >= 0 but not > 0; |r| < 0.97
+    assert abs(np.corrcoef(s, np.arange(s.size))[0, 1]) < 0.97
+    assert positions_from_scales(s)[1] == "frame-order"

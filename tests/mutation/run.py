@@ -33,7 +33,8 @@ DECONVOLVE = ["tests/test_deconvolve.py", "tests/test_deconvolve_asymmetric.py",
 # module (under pipeline/) -> the test files that cover it
 MODULES: dict[str, list[str]] = {
     "core/optics.py": ["tests/test_optics.py", "tests/test_issue11_kills.py"],
-    "core/spectra.py": ["tests/test_psf.py", "tests/test_deconvolve_asymmetric.py"],
+    "core/spectra.py": ["tests/test_psf.py", "tests/test_deconvolve_asymmetric.py",
+                        "tests/test_spectra.py"],
     "core/weights.py": ["tests/test_weights.py"],
     "core/stack_kernel.py": ["tests/test_stack_heart.py", "tests/test_engine.py"],
     "core/psf.py": ["tests/test_psf.py", "tests/test_issue11_kills.py"],
