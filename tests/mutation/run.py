@@ -5,6 +5,8 @@ the tests that cover it. Not part of CI (minutes to hours on 2 cores).
     python tests/mutation/run.py                       # every module below
     python tests/mutation/run.py core/optics.py core/spectra.py
     python tests/mutation/run.py --list                # the module -> tests table
+    python tests/mutation/run.py --recheck SESSIONS core/spectra.py  # survivors of a
+        # finished session against today's tests (after adding tests; cheap)
 
 Each module is mutated in a scratch copy of the checkout (never in place), one worker,
 ``pytest -x`` on its test files, 60 s per mutant. Prints a table: mutants, killed,
@@ -109,12 +111,53 @@ def score(module: str, work: Path, sessions: Path) -> dict:
     return counts
 
 
+def survivors(session: Path) -> list[dict]:
+    dump = subprocess.run(["cosmic-ray", "dump", str(session)], check=True,
+                          capture_output=True, text=True).stdout
+    out = []
+    for line in dump.splitlines():
+        job, result = json.loads(line)
+        if result is not None and result.get("test_outcome") == "survived":
+            out.append(job["mutations"][0])
+    return out
+
+
+def recheck(module: str, sessions: Path) -> None:
+    """Re-run the survivors of ``module``'s session against the current tests."""
+    session = sessions / f"{module.replace('/', '_')}.sqlite"
+    tests = [t for t in MODULES[module] if (ROOT / t).exists()]
+    cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
+    alive = []
+    found = survivors(session)
+    for m in found:
+        with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
+            work = Path(tmp)
+            scratch_copy(work)
+            subprocess.run(["cosmic-ray", "apply", m["module_path"], m["operator_name"],
+                            str(m["occurrence"])], cwd=work, check=True, capture_output=True)
+            proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, check=False)
+        line = m["start_pos"][0]
+        src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
+        verdict = "KILLED" if proc.returncode == 1 else "SURVIVED"
+        print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
+              flush=True)
+        if verdict == "SURVIVED":
+            alive.append(m)
+    print(f"{module}: {len(found) - len(alive)} of {len(found)} survivors now killed")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("modules", nargs="*", help="modules under pipeline/ (default: all)")
     parser.add_argument("--list", action="store_true")
     parser.add_argument("--keep", type=Path, help="folder for the sessions (default: a temp)")
+    parser.add_argument("--recheck", type=Path, metavar="SESSIONS",
+                        help="re-run the survivors recorded in SESSIONS with today's tests")
     args = parser.parse_args(argv)
+    if args.recheck:
+        for module in args.modules:
+            recheck(module, args.recheck)
+        return 0
     if args.list:
         for m, t in MODULES.items():
             print(f"{m:30s} {' '.join(t)}")
