@@ -153,3 +153,46 @@ def test_eq8_dissimilarity_sees_a_flip_of_a_one_sided_kernel():
     d2 = np.abs(k1 - k2) ** 2
     ref = np.sum((d2 / (np.abs(k1) ** 2 + 1e-3) + d2 / (np.abs(k2) ** 2 + 1e-3)) * weight)
     assert spectra.dissimilarity(k, k[::-1, ::-1], n=n) == pytest.approx(ref, rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- huge kernels
+@pytest.fixture(scope="module")
+def huge_case():
+    from skimage import data as skdata
+    from test_deconvolve import blur as fft_blur
+    from test_deconvolve import disk_kernel
+
+    u = skdata.camera()[::2, ::2] / 255.0
+    truth = np.where(u <= 0.04045, u / 12.92, ((u + 0.055) / 1.055) ** 2.4)
+    k = disk_kernel(100.0)  # 201 px on a 256 px frame
+    y = fft_blur(truth, k) + np.random.default_rng(4).normal(0, 0.01, truth.shape)
+    return truth, k, y.astype(np.float32)
+
+
+def _psnr(a, truth) -> float:
+    return float(10 * np.log10(1.0 / np.mean((np.asarray(a, float) - truth) ** 2)))
+
+
+@pytest.mark.parametrize(
+    "method",
+    [
+        pytest.param(
+            "wiener",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="bug: with a 201 px pillbox on a 256 px frame (noise 0.01) Wiener's "
+                "output is 2.4 dB worse than its input over the frame (12.6 vs 15.0 dB; equal "
+                "in the centre): the frame's border is damaged, which an MMSE filter with a "
+                "fitted prior should never do",
+            ),
+        ),
+        "rl",
+        "sparse",
+    ],
+)
+def test_huge_kernel_restoration_is_no_worse_than_its_input(huge_case, method):
+    """The old check (finite, |out| < 10) holds for any output; this one does not."""
+    truth, k, y = huge_case
+    options = {"wiener": {}, "rl": {"iterations": 15}, "sparse": {"iterations": 15}}[method]
+    out = dc.deconvolve(y, k, method=method, **options)
+    assert _psnr(out, truth) > _psnr(y, truth) + 0.2
