@@ -83,3 +83,37 @@ def test_speed_for_tilt_near_the_unreachable_limit():
     assert speed == pytest.approx(h * tan_theta / t, rel=1e-9)
     with pytest.raises(InputError, match=r"needs tan\(phi\) < 2f/H = 5\.000"):
         optics.speed_for_focal_plane_tilt(f, p0, h, t, math.degrees(math.atan(5.5)))
+
+
+# ----------------------------------------------------------------------------- issue 11
+def test_image_distance_equal_to_f_is_focus_at_infinity():
+    assert optics.focus_distance(50.0, 50.0) == math.inf
+    np.testing.assert_array_equal(optics.focus_distance(50.0, np.array([50.0, 100.0])),
+                                  [math.inf, 100.0])  # 1/50 = 1/100 + 1/100
+    assert optics.image_distance(50.0, math.inf) == 50.0
+
+
+def _thin_lens_u(f, v):
+    return 1.0 / (1.0 / f - 1.0 / v)
+
+
+@pytest.mark.parametrize("ratio", [0.3, 0.6, 0.9, 0.999])
+def test_dof_near_limit_on_both_sides_of_its_branch(ratio):
+    """Blur ``a |v - p| / v <= c``: the near limit is at ``v = p a / (a - c)`` when c < a."""
+    f, n, u = 50.0, 2.0, 3000.0
+    a = f / n
+    c = ratio * a
+    p = 1.0 / (1.0 / f - 1.0 / u)
+    near, far = optics.depth_of_field(f, n, u, c)
+    v_near = p * a / (a - c)
+    assert near == pytest.approx(_thin_lens_u(f, v_near), rel=1e-9)
+    blur_at_near = a * abs(v_near - p) / v_near
+    assert blur_at_near == pytest.approx(c, rel=1e-9)
+    assert far == math.inf or far > u
+
+
+@pytest.mark.parametrize("ratio", [1.0, 1.5])
+def test_dof_near_limit_is_the_lens_when_the_coc_reaches_the_aperture(ratio):
+    f, n = 50.0, 2.0
+    near, _ = optics.depth_of_field(f, n, 3000.0, ratio * f / n)
+    assert near == f

@@ -89,13 +89,13 @@ MUTANTS = {
         "pipeline/core/optics.py",
         "    if np.any(v < f):",
         "    if np.any(v <= f):",
-        ["tests/test_issue11_kills.py::test_image_distance_equal_to_f_is_focus_at_infinity"],
+        ["tests/test_optics_boundaries.py::test_image_distance_equal_to_f_is_focus_at_infinity"],
     ),
     "dof-near-branch-threshold": (
         "pipeline/core/optics.py",
         "near = focal_length_mm if coc_mm >= a else",
         "near = focal_length_mm if coc_mm >= 0.5 * a else",
-        ["tests/test_issue11_kills.py::test_dof_near_limit_on_both_sides_of_its_branch"],
+        ["tests/test_optics_boundaries.py::test_dof_near_limit_on_both_sides_of_its_branch"],
     ),
     "no-exponential-backoff": (
         "pipeline/tether/session.py",

@@ -34,8 +34,7 @@ DECONVOLVE = ["tests/test_deconvolve.py", "tests/test_deconvolve_asymmetric.py",
 
 # module (under pipeline/) -> the test files that cover it
 MODULES: dict[str, list[str]] = {
-    "core/optics.py": ["tests/test_optics.py", "tests/test_optics_boundaries.py",
-                       "tests/test_issue11_kills.py"],
+    "core/optics.py": ["tests/test_optics.py", "tests/test_optics_boundaries.py"],
     "core/spectra.py": ["tests/test_psf.py", "tests/test_deconvolve_asymmetric.py",
                         "tests/test_spectra.py"],
     "core/weights.py": ["tests/test_weights.py"],
