@@ -83,6 +83,9 @@ def test_speed_for_tilt_near_the_unreachable_limit():
     assert speed == pytest.approx(h * tan_theta / t, rel=1e-9)
     with pytest.raises(InputError, match=r"needs tan\(phi\) < 2f/H = 5\.000"):
         optics.speed_for_focal_plane_tilt(f, p0, h, t, math.degrees(math.atan(5.5)))
+    # just past the limit: denominator -0.5
+    with pytest.raises(InputError, match="unreachable"):
+        optics.speed_for_focal_plane_tilt(f, p0, h, t, math.degrees(math.atan((2 * f + 0.5) / h)))
 
 
 # ----------------------------------------------------------------------------- issue 11
