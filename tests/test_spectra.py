@@ -71,3 +71,22 @@ def test_mtf_of_a_box_is_a_sinc():
     expected = np.abs(np.sin(3 * np.pi * freq) / (3 * np.sin(np.pi * np.maximum(freq, 1e-12))))
     expected[0] = 1.0
     np.testing.assert_allclose(m, expected, atol=1e-12)
+
+
+def test_dissimilarity_default_grid_for_a_23_px_kernel():
+    """2 * 23 - 1 = 45 -> the next power of two is 64 (a 3 * size rule would give 128)."""
+    k = np.zeros((23, 23))
+    k[11, 11:] = 1 / 12
+    assert spectra.dissimilarity(k, k[::-1, ::-1]) == spectra.dissimilarity(
+        k, k[::-1, ::-1], n=64
+    )
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="bug: mtf sizes its grid from kernel.shape[0] only, so a kernel wider than n "
+    "(e.g. 1 x 301 with n=256) does not fit the grid and raises (square kernels are fine)",
+)
+def test_mtf_of_a_wide_kernel():
+    _, m = spectra.mtf(np.full((1, 301), 1 / 301), n=256)
+    assert m[0] == pytest.approx(1.0)
