@@ -11,6 +11,20 @@ import os
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+from hypothesis.database import DirectoryBasedExampleDatabase
+
+# Property tests: reproducible in CI (no randomness, no database: the same examples on
+# every run, so a failure is a failure of the change, never of the draw), exploring
+# locally (random draws, failures kept in .hypothesis/ and replayed first next time).
+# CI is recognised by ``CI`` (set by hosted CI services) or by ``.ci/run``'s
+# ``FLEXDOF_REQUIRE_SHARED_DATA=1``; ``HYPOTHESIS_PROFILE`` picks a profile explicitly.
+settings.register_profile("ci", derandomize=True, database=None, print_blob=True)
+settings.register_profile(
+    "dev", database=DirectoryBasedExampleDatabase(".hypothesis/examples"), print_blob=True
+)
+_IN_CI = bool(os.environ.get("CI")) or os.environ.get("FLEXDOF_REQUIRE_SHARED_DATA") == "1"
+settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci" if _IN_CI else "dev"))
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(os.environ.get("FLEXDOF_SHARED_DATA", REPO_ROOT.parent / "shared" / "data"))

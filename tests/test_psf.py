@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 from scipy import integrate
 
@@ -253,7 +253,7 @@ def test_depth_at_infinity_and_just_beyond_f(lens, sweep):
 
 def test_kernel_too_large_is_a_clear_error():
     wide = Lens(50.0, 1.0, 1.0, 100, 100)  # 50 mm aperture on 1 um pixels
-    with pytest.raises(InputError, match="size="):
+    with pytest.raises(InputError, match="--size"):
         psf.integrated_psf(wide, 60.0, constant_speed(50.5, 1.0, 0.1))
 
 
@@ -310,6 +310,12 @@ def test_nan_inputs_are_errors(lens, sweep):
     speed=st.floats(-2.0, 2.0),
     exposure=st.floats(0.01, 0.5),
     model=st.sampled_from(["pillbox", "gaussian"]),
+)
+# Issue 11: a blur change of ~1.6e-5 px over the exposure; the closed form's pixel
+# integration was off by L1 = 2.1e-3 here (fixed by psf.SMALL_CHANGE_PX).
+@example(
+    focal=5.0, f_number=3.25, pitch=4.0, depth_factor=4.0, start_offset=0.0390625,
+    speed=5.4e-7, exposure=0.5, model="pillbox",
 )
 def test_kernels_are_valid_and_analytic_equals_numeric(
     focal, f_number, pitch, depth_factor, start_offset, speed, exposure, model

@@ -8,12 +8,14 @@ import struct
 import tomllib
 from pathlib import Path
 
+import numpy as np
 import pytest
 import usb.core
 
 from pipeline import cli
 from pipeline.errors import InputError, TetherError
 from pipeline.io.profiles import lens_to_toml, load_lens
+from pipeline.io.read import read_frame
 from pipeline.tether.base import CapturedObject, EndStop
 from pipeline.tether.codes import OC, CanonOC, NikonOC
 from pipeline.tether.emulated.device import (
@@ -217,13 +219,31 @@ def test_calibration_recovers_emulator_step_size(tmp_path):
     assert lens.focal_length_mm == 30.0
 
 
+def _gradient_energy(image) -> float:
+    grey = image.mean(axis=-1) if image.ndim == 3 else image
+    return float(np.mean(np.diff(grey, axis=0) ** 2) + np.mean(np.diff(grey, axis=1) ** 2))
+
+
+def _assert_sharper_than_the_plain_average(out: Path, stack: Path) -> None:
+    """The result is an image of the frames' scene, sharper than their plain average."""
+    result = read_frame(out)
+    frames = [read_frame(p) for p in sorted(stack.iterdir()) if p.suffix.lower() in FRAME_EXT]
+    assert frames and result.shape == frames[0].shape
+    average = np.mean(frames, axis=0)
+    assert abs(float(result.mean()) - float(average.mean())) < 0.05 * float(average.mean())
+    assert _gradient_energy(result) > 1.5 * _gradient_energy(average)
+
+
+FRAME_EXT = {".jpg", ".jpeg", ".tif", ".tiff", ".png", ".cr2", ".nef"}
+
+
 def test_emulated_stack_processes_to_edof(tmp_path: Path):
     """Capture with the emulator, then run the lead's ``flexdof stack`` on it."""
     stack, out = tmp_path / "stack", tmp_path / "edof.tif"
     assert cli.main(["tether", "stack", "-o", str(stack), "--frames", "20", "--step", "12",
                      "--emulate", "canon", "--settle-ms", "0"]) == 0
     assert cli.main(["stack", str(stack), "-o", str(out)]) == 0
-    assert out.is_file()
+    _assert_sharper_than_the_plain_average(out, stack)
 
 
 def test_nikon_step_too_small_is_an_input_error():
@@ -265,7 +285,7 @@ def test_tethered_sweep_processes_with_a_calibrated_lens(tmp_path, capsys):
     lens = load_lens("sigma-30mm-f1.4-canon-eos-20d")
     calibrated.write_text(lens_to_toml(dataclasses.replace(lens, step_image_distance_um=5.0)))
     assert cli.main(["-q", "stack", str(shots), "-o", str(out), "--lens", str(calibrated)]) == 0
-    assert out.is_file()
+    _assert_sharper_than_the_plain_average(out, shots)  # the sweep image, deconvolved
 
 
 def test_tether_commands_speak_the_cli_vocabulary(tmp_path, capsys):
