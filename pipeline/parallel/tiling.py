@@ -49,7 +49,7 @@ from pipeline.errors import InputError
 log = logging.getLogger(__name__)
 
 MIN_TILE_PX = 64  # smaller tiles are all overlap: the same result, many times the work
-WHOLE_FRAME_PX = 12_000_000  # frames up to this are restored whole (~40 B/px at the peak)
+WHOLE_FRAME_PX = 16_000_000  # frames up to this are restored whole (~70 B/px at the peak)
 TILE_OVER_REACH = 4  # a tile is at least this many times its overlap (reach + padding)
 
 
