@@ -71,6 +71,30 @@ def dissimilarity(
     return float(np.sum(terms * natural_image_spectrum(shape)))
 
 
+def dissimilarities(
+    kernels, reference: np.ndarray, *, eps: float = 1e-3, n: int | None = None
+) -> np.ndarray:
+    """:func:`dissimilarity` of each of ``kernels`` (n, kh, kw) to ``reference``.
+
+    The same numbers as ``[dissimilarity(k, reference) for k in kernels]``, with the
+    reference's spectrum, its ``|K|^2 + eps`` and the natural-image weights computed once.
+    """
+    kernels = np.asarray(kernels, float)
+    reference = np.asarray(reference, float)
+    if kernels.ndim != 3 or len(kernels) == 0:
+        raise InputError(f"kernels must be a non-empty (n, rows, cols) array, got {kernels.shape}")
+    _, f2, shape = _common_spectra(kernels[0], reference, n)
+    weights = natural_image_spectrum(shape)
+    ref_power = np.abs(f2) ** 2 + eps
+    out = np.empty(len(kernels))
+    for i, k in enumerate(kernels):
+        f1 = centred_fft(k, shape)
+        diff2 = np.abs(f1 - f2) ** 2
+        terms = diff2 / (np.abs(f1) ** 2 + eps) + diff2 / ref_power  # Eq. 8
+        out[i] = float(np.sum(terms * weights))
+    return out
+
+
 def mtf(kernel: np.ndarray, *, n: int = 256) -> tuple[np.ndarray, np.ndarray]:
     """Modulation transfer function along the horizontal frequency axis.
 

@@ -128,12 +128,12 @@ def stack_kernel(
         middle = optics.focus_distance(lens.focal_length_mm, 0.5 * (p_lo + p_hi))
         sweep = constant_speed(p_lo, p_hi - p_lo, 1.0)
         analytic = psf.integrated_psf(lens, middle, sweep, size=kernel.shape[0])
-        d_avg = np.mean([spectra.dissimilarity(k, kernel) for k in per_position])
-        d_eq6 = np.mean([spectra.dissimilarity(k, analytic) for k in per_position])
+        d_avg = np.mean(spectra.dissimilarities(per_position, kernel))
+        d_eq6 = np.mean(spectra.dissimilarities(per_position, analytic))
         summary["dissimilarity"] = {"stack-average": float(d_avg), "analytic-eq6": float(d_eq6)}
         if d_eq6 < d_avg:
             kernel, summary["source"] = analytic, "analytic-eq6"
-    spread = [spectra.dissimilarity(k, kernel) for k in per_position]
+    spread = spectra.dissimilarities(per_position, kernel)
     summary["depth_invariance_eq8"] = {"mean": float(np.mean(spread)), "max": float(np.max(spread))}
     return kernel, per_position[::4], summary
 
@@ -149,6 +149,6 @@ def wiener_options(kernel, kernel_samples=None) -> dict:
       dense stacks (spread <= 0.03), where it only adds estimation noise.
     """
     if kernel_samples is not None:
-        spread = np.mean([spectra.dissimilarity(k, kernel) for k in kernel_samples])
+        spread = np.mean(spectra.dissimilarities(kernel_samples, kernel))
         kernel_samples = kernel_samples if spread > KERNEL_VARIANCE_SPREAD else None
     return {"kernel_samples": kernel_samples}

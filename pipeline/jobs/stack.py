@@ -355,6 +355,7 @@ def process_stack(
                 f"{stack.base_dir}: all {n} frames have the same focus position: nothing to sweep"
             )
         small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+        aligned.previews = None  # memory flat in frames: only the small copies are used now
         max_span = min(400.0, float(np.hypot(*aligned.shape[:2])))  # bounded by the frame
         try:
             blur_span = defocus.estimate_blur_span(
@@ -365,7 +366,9 @@ def process_stack(
                 f"{stack.base_dir}: cannot measure the blur across the stack ({err}); "
                 "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
             ) from err
+        del small
         log.info("estimated blur span: %.1f px across the stack", blur_span)
+    aligned.previews = None  # not needed past the alignment and the blur fit
     kernel, kernel_samples, kernel_summary = stack_kernel(
         positions, weights, lens=lens, absolute=aligned.absolute, blur_span_px=blur_span
     )

@@ -68,4 +68,9 @@ def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
 
 def clipped_pixels(image: np.ndarray) -> np.ndarray:
     """Pixels at the clipping level in any channel."""
-    return np.any(image >= SATURATION, axis=-1) if image.ndim == 3 else image >= SATURATION
+    if image.ndim != 3:
+        return image >= SATURATION
+    mask = image[..., 0] >= SATURATION  # OR of channel comparisons: no (rows, cols, c) temporary
+    for c in range(1, image.shape[2]):
+        mask |= image[..., c] >= SATURATION
+    return mask

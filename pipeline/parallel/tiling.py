@@ -21,6 +21,14 @@ from the restoration operator's support (see :func:`pipeline.core.deconvolve.com
   every overlap tried (40-120 px), so the quality option costs whole-frame memory.
   ``overlap_px`` still forces tiles (for the accuracy benchmark).
 
+Frames up to ``WHOLE_FRAME_PX`` (numpy input, no forced ``overlap_px``) are restored
+whole, without dask: one FFT grid per channel costs less than tiles that each carry
+their overlap and padding, and the FFTs use every core (``scipy.fft.set_workers``).
+Larger frames are tiled with tiles at least ``TILE_OVER_REACH`` times the overlap (a
+tile that is mostly overlap repeats its neighbours' work); tiles of one size share
+their kernel spectra (cached in the plan) and run single-threaded FFTs in the dask
+threads (one level of parallelism).
+
 Frame edges use ``boundary="none"``: an edge tile keeps the frame edge and treats
 it exactly as :func:`pipeline.core.deconvolve.dispatch.deconvolve` does (same padding or the
 same extended domain), so the tiled result equals the untiled one.
@@ -29,10 +37,11 @@ same extended domain), so the tiled result equals the untiled one.
 from __future__ import annotations
 
 import logging
+import os
 from functools import partial
 
-import dask.array as da
 import numpy as np
+from scipy import fft as sfft
 
 from pipeline.core import deconvolve as dc
 from pipeline.errors import InputError
@@ -40,6 +49,13 @@ from pipeline.errors import InputError
 log = logging.getLogger(__name__)
 
 MIN_TILE_PX = 64  # smaller tiles are all overlap: the same result, many times the work
+WHOLE_FRAME_PX = 16_000_000  # frames up to this are restored whole (~70 B/px at the peak)
+TILE_OVER_REACH = 4  # a tile is at least this many times its overlap (reach + padding)
+
+
+def _is_dask(image) -> bool:
+    """A dask array, without importing dask.array for numpy input."""
+    return type(image).__module__.split(".")[0] == "dask" and hasattr(image, "chunks")
 
 
 def deconvolve_tiled(
@@ -66,7 +82,9 @@ def deconvolve_tiled(
     method, saturation, censored, **options
         As :func:`pipeline.core.deconvolve.deconvolve` (``censored`` is tiled with the image).
     tile_px : int
-        Tile side for numpy input; the work per tile is ``(tile_px + 2 depth)^2``.
+        Tile side for numpy frames larger than ``WHOLE_FRAME_PX`` (smaller ones are
+        restored whole) or with ``overlap_px`` given; raised to ``TILE_OVER_REACH`` times
+        the overlap plus padding. The work per tile is ``(tile_px + 2 depth)^2``.
     overlap_px : int, optional
         Overlap ``depth``; default the operator's support (``plan.depth``, see the
         module notes). Smaller values trade accuracy at tile seams for time.
@@ -84,11 +102,30 @@ def deconvolve_tiled(
     if tile_px < MIN_TILE_PX:  # each tile costs (tile + 2 depth)^2: tiny tiles only add work
         log.info("tile_px %d raised to %d px", tile_px, MIN_TILE_PX)
         tile_px = MIN_TILE_PX
-    lazy = isinstance(image, da.Array)
+    lazy = _is_dask(image)
     whole = np.asarray(image.compute() if lazy else image)
-    p = dc.plan(whole, kernel, method=method, saturation=saturation, censored=censored, **options)
+    cores = os.cpu_count() or 1
+    if not lazy and overlap_px is None and whole.shape[0] * whole.shape[1] <= WHOLE_FRAME_PX:
+        with sfft.set_workers(cores):  # the only level of parallelism here
+            p = dc.plan(
+                whole, kernel, method=method, saturation=saturation, censored=censored, **options
+            )
+            return dc.restore(whole, p, censored)
+    import dask.array as da  # only the tiled path needs it
+
+    with sfft.set_workers(cores):
+        p = dc.plan(
+            whole, kernel, method=method, saturation=saturation, censored=censored, **options
+        )
     dtype = np.float32 if whole.dtype == np.float32 else np.float64
-    arr = image if lazy else da.from_array(whole, chunks=(tile_px, tile_px, *whole.shape[2:]))
+    if not lazy and overlap_px is None:  # else most of each tile's work is overlap
+        taper = max(max(np.shape(kernel)), 16)
+        tile_px = max(tile_px, TILE_OVER_REACH * (2 * p.depth + taper))
+    arr = (
+        image
+        if lazy
+        else da.from_array(whole, chunks=(tile_px, tile_px, *whole.shape[2:]), name=False)
+    )
     arr = arr.astype(dtype)
     if arr.ndim == 3:
         arr = arr.rechunk({2: -1})
@@ -116,7 +153,9 @@ def deconvolve_tiled(
     else:
         mask = np.asarray(censored, dtype=bool)
         mask = mask[..., np.newaxis] if arr.ndim == 3 else mask
-        mask_arr = da.from_array(mask, chunks=arr.chunks[:2] + ((1,) if arr.ndim == 3 else ()))
+        mask_arr = da.from_array(
+            mask, chunks=arr.chunks[:2] + ((1,) if arr.ndim == 3 else ()), name=False
+        )
         out = da.map_overlap(
             _restore_censored,
             arr,

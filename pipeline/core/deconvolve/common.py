@@ -18,7 +18,10 @@ _MAD_TO_SIGMA = 0.6744897501960817  # median(|N(0, 1)|)
 _KERNEL_SUM_TOL = 1e-3
 _LAM_MIN = 1e-6  # floor of the Wiener noise-to-signal weight (float32 round-off level)
 _DEPTH_TOL = 1e-5  # tail of the restoration filter beyond the overlap depth
-_WORKERS = -1
+# FFT threads: None means scipy.fft's per-thread default (1 unless a caller sets
+# ``scipy.fft.set_workers``), so there is one level of parallelism: the whole-frame path of
+# pipeline.parallel.tiling sets it to the cores, tiles in dask threads run single-threaded.
+_WORKERS = None
 
 
 # ----------------------------------------------------------------------------- validation

@@ -41,7 +41,12 @@ from pipeline.core.deconvolve.common import (
 )
 from pipeline.core.deconvolve.rl import _plan_rl, _rl_channel
 from pipeline.core.deconvolve.sparse import _plan_sparse, _sparse_channel
-from pipeline.core.deconvolve.wiener import _plan_wiener, _wiener_channel
+from pipeline.core.deconvolve.wiener import (
+    _plan_wiener,
+    _wiener_channel,
+    _wiener_grid,
+    _wiener_spectra,
+)
 from pipeline.errors import InputError
 
 
@@ -100,11 +105,20 @@ def restore(image, p: Plan, censored=None) -> np.ndarray:
     valid = _valid_mask(y, p.saturation, censored)
     out = np.empty_like(y)
     prm = p.params
+    shared = None
+    if p.method == "wiener":  # kernel, variance and Laplacian spectra: once per grid
+        shared = _shared_wiener_spectra(p, y.shape[:2], y.dtype)
     for c in range(y.shape[2]):
         yc, vc = y[..., c], valid[..., c]
         if p.method == "wiener":
             xc = _wiener_channel(
-                yc, p.kernel, float(prm["lam"][c]), prm["prior"], prm["pad"], prm["variance"]
+                yc,
+                p.kernel,
+                float(prm["lam"][c]),
+                prm["prior"],
+                prm["pad"],
+                prm["variance"],
+                spectra=shared,
             )
         elif p.method == "rl":
             thr = None if prm["threshold"] is None else float(prm["threshold"][c])
@@ -115,6 +129,19 @@ def restore(image, p: Plan, censored=None) -> np.ndarray:
             )
         out[..., c] = xc
     return out if np.ndim(image) == 3 else out[..., 0]
+
+
+def _shared_wiener_spectra(p: Plan, frame_shape, dtype):
+    """:func:`_wiener_spectra` for a frame (or tile) of ``frame_shape``, cached in the plan
+    per FFT grid (tiles of one size share them; a few grids at most per plan)."""
+    grid, _ = _wiener_grid(frame_shape, p.kernel, p.params["pad"])
+    cache = p.params.setdefault("_spectra", {})
+    key = (grid, np.dtype(dtype).str)
+    found = cache.get(key)
+    if found is None:
+        found = _wiener_spectra(grid, p.kernel, p.params["prior"], p.params["variance"], dtype)
+        cache[key] = found  # a race computes it twice, harmlessly
+    return found
 
 
 # ----------------------------------------------------------------------------- public API

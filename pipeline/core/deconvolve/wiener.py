@@ -75,15 +75,40 @@ def kernel_variance(samples, kernel):
     return on_grid
 
 
-def _wiener_channel(y, kernel, lam, prior, pad, variance=None) -> np.ndarray:
+def _wiener_spectra(shape, kernel, prior, variance, dtype):
+    """What every channel on a grid of ``shape`` shares: ``conj(K)``, ``|K|^2 + V`` and the
+    regulariser (``|D|^2`` or the flat spectrum), computed once (in ``dtype``)."""
+    k_fft = _kernel_fft(kernel, shape, dtype)
+    d2 = _laplacian_spectrum(shape, dtype)
+    if prior == "natural":
+        reg = d2
+    else:  # flat spectrum of the zero-mean part: the mean (DC) is not regularised
+        reg = np.ones_like(d2)
+        reg[0, 0] = 0.0
+    base = np.abs(k_fft) ** 2
+    if variance is not None:
+        base = base + variance(k_fft.shape)
+    return np.conj(k_fft), base.astype(d2.dtype, copy=False), reg
+
+
+def _wiener_grid(y_shape, kernel, pad):
+    """(FFT grid shape, taper width) of :func:`_wiener_channel` for a frame of ``y_shape``."""
     taper = max(max(kernel.shape), 16)
-    shape = _fast_shape((y.shape[0] + 2 * (pad + taper), y.shape[1] + 2 * (pad + taper)))
-    k_fft = _kernel_fft(kernel, shape, y.dtype)
-    gain = _wiener_gain(k_fft, _laplacian_spectrum(shape, y.dtype), lam, prior, variance)
-    gain = gain.astype(k_fft.dtype, copy=False)
+    shape = _fast_shape((y_shape[0] + 2 * (pad + taper), y_shape[1] + 2 * (pad + taper)))
+    return shape, taper
+
+
+def _wiener_channel(y, kernel, lam, prior, pad, variance=None, spectra=None) -> np.ndarray:
+    """One channel; ``spectra`` (from :func:`_wiener_spectra` on this grid) may be shared."""
+    shape, taper = _wiener_grid(y.shape, kernel, pad)
+    if spectra is None:
+        spectra = _wiener_spectra(shape, kernel, prior, variance, y.dtype)
+    conj_k, base, reg = spectra
     crop = tuple(slice(pad + taper, pad + taper + n) for n in y.shape)
-    x_fft = gain * sfft.rfft2(_taper_pad(y, pad, taper, shape), workers=_WORKERS)
-    return sfft.irfft2(x_fft, s=shape, workers=_WORKERS)[crop]
+    x_fft = sfft.rfft2(_taper_pad(y, pad, taper, shape), workers=_WORKERS)
+    x_fft *= conj_k  # X = K* Y / (|K|^2 + V + lam |D|^2), Sec. 4.3 [24]
+    x_fft /= base + np.asarray(lam, base.dtype) * reg
+    return sfft.irfft2(x_fft, s=shape, overwrite_x=True, workers=_WORKERS)[crop]
 
 
 def _wiener_transfer(lam: float, prior: str, variance=None):
