@@ -34,6 +34,59 @@ def _natural_prior_scale(y, valid, sigma, kernel) -> np.ndarray:
     return np.maximum(s2, 4.0 * sigma**2)
 
 
+MAX_NOISE_GAIN = 10.0  # ceiling of the automatic Wiener filter's white-noise gain
+
+
+def _gain_grid(kernel: np.ndarray, prior: str, shape=None):
+    """``|K|^2``, the regulariser's spectrum and the rfft weights on one grid."""
+    if shape is None:
+        shape = _fast_shape((max(256, 2 * kernel.shape[0]), max(256, 2 * kernel.shape[1])))
+    k2 = np.abs(_kernel_fft(kernel, shape, np.float64)) ** 2
+    if prior == "natural":
+        reg = _laplacian_spectrum(shape, np.float64)
+    else:
+        reg = np.ones_like(k2)
+        reg[0, 0] = 0.0
+    weight = np.full(k2.shape, 2.0)  # an rfft grid: interior columns stand for two
+    weight[:, 0] = 1.0
+    if shape[1] % 2 == 0:
+        weight[:, -1] = 1.0
+    return k2, reg, weight / weight.sum()
+
+
+def _gain_on(grid, lam: float) -> float:
+    k2, reg, weight = grid
+    return float(np.sqrt(np.sum(weight * k2 / (k2 + lam * reg) ** 2)))
+
+
+def white_noise_gain(kernel, lam: float, prior: str = "natural", shape=None) -> float:
+    """``sqrt(mean |G|^2)`` of the Wiener filter: how much it scales white noise's std."""
+    return _gain_on(_gain_grid(np.asarray(kernel, dtype=np.float64), prior, shape), lam)
+
+
+def lam_for_noise_gain(kernel, target: float, prior: str = "natural") -> float:
+    """The smallest ``lam`` whose white-noise gain (:func:`white_noise_gain`) is ``<= target``.
+
+    A noise target instead of the prior fit: for wide IPSFs ``sum(k^2)`` is tiny, so the
+    natural-prior scale grows and ``lam`` collapses (gains of 30+ on real stacks: grain
+    and ringing). Bisection in ``log lam`` (the gain falls monotonically with ``lam``) on
+    one kernel spectrum.
+    """
+    if not np.isfinite(target) or target <= 0:
+        raise InputError(f"noise_gain must be a positive number, got {target!r}")
+    grid = _gain_grid(np.asarray(kernel, dtype=np.float64), prior)
+    if _gain_on(grid, _LAM_MIN) <= target:
+        return _LAM_MIN
+    lo, hi = np.log(_LAM_MIN), np.log(100.0)
+    for _ in range(24):  # 16 decades to ~1% in lam
+        mid = 0.5 * (lo + hi)
+        if _gain_on(grid, float(np.exp(mid))) > target:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.exp(hi))
+
+
 def _wiener_gain(k_fft, d2, lam: float, prior: str, variance=None) -> np.ndarray:
     if prior == "natural":
         reg = d2
@@ -124,6 +177,7 @@ def _plan_wiener(
     prior="natural",
     regularization=None,
     kernel_samples=None,
+    noise_gain=None,
 ):
     if prior not in PRIORS:
         raise InputError(f"prior must be one of {PRIORS}, got {prior!r}")
@@ -140,6 +194,11 @@ def _plan_wiener(
             )
             scale = np.maximum((var - sigma**2) / float(np.sum(k**2)), sigma**2)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
+        # never amplify white noise by more than noise_gain (issue 13), nor ever by more
+        # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
+        # lens PSF's spectral zeros amplify round-off (issue 14: an 89 px pillbox, -11 dB)
+        gain = MAX_NOISE_GAIN if noise_gain is None else min(float(noise_gain), MAX_NOISE_GAIN)
+        lam = np.maximum(lam, lam_for_noise_gain(k, gain, prior))
     lam = np.clip(lam, _LAM_MIN, None)
     variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
     pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))
