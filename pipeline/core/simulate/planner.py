@@ -188,16 +188,25 @@ class _KernelCache:
         self._k: dict = {}
         self._s: dict = {}
 
-    def kernel(self, inv: float, profile: Profile) -> np.ndarray:
-        key = (inv, id(profile))
+    def kernel(self, inv: float, profile: Profile, scale: float = 1.0) -> np.ndarray:
+        """The IPSF in grid pixels of a sub-step later scaled by ``scale`` (``p / p_ref``).
+
+        The detector blur of Eq. 2 is ``b`` detector px; the step is rendered on the
+        reference grid and then scaled by ``scale``, so its kernel is ``b / scale`` grid px:
+        the pitch times ``scale``.
+        """
+        key = (inv, id(profile), scale)
         if key not in self._k:
-            self._k[key] = psf.integrated_psf(self.lens, _depth(inv), profile, model=self.model)
+            lens = self.lens
+            if scale != 1.0:
+                lens = dataclasses.replace(lens, pixel_pitch_um=lens.pixel_pitch_um * scale)
+            self._k[key] = psf.integrated_psf(lens, _depth(inv), profile, model=self.model)
         return self._k[key]
 
-    def spectrum(self, inv: float, profile: Profile) -> np.ndarray:
-        key = (inv, id(profile))
+    def spectrum(self, inv: float, profile: Profile, scale: float = 1.0) -> np.ndarray:
+        key = (inv, id(profile), scale)
         if key not in self._s:
-            self._s[key] = self.spectra.of(self.kernel(inv, profile))
+            self._s[key] = self.spectra.of(self.kernel(inv, profile, scale))
         return self._s[key]
 
 
@@ -271,10 +280,13 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
     edges = np.linspace(t0, t1, _MAG_NODES + 1)
     t_mid = 0.5 * (edges[1:] + edges[:-1])
     p = profile.position(t_mid)
-    corner = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+    # The image's RMS radius per axis (a uniform grid: size / sqrt(12)): the error of a
+    # displacement (s - 1) r is linear in r for small shifts, so its RMS over the image is
+    # the error at the RMS radius (the corner overstates it 2-3x).
+    radius = np.array([shape[1], shape[0]]) / math.sqrt(12)
     if np.ptp(p) == 0:  # static: one node
         p = p[:1]
-    shifts = corner[None, :] * (p / p_ref - 1)[:, None]  # px at the sensor corner
+    shifts = radius[None, :] * (p / p_ref - 1)[:, None]  # px at the RMS radius
     if np.max(np.abs(shifts)) < 1e-9:
         return (Step(profile, 1.0, 1.0),), 0.0, False, 1
     nodes = p.size

@@ -111,7 +111,9 @@ def render(
     for band in p.bands:
         image = np.zeros_like(out)
         for step in band.steps:
-            sub = _layered(scene, band.layers, step.profile, cache, p.occlusion, p.edge_inv_depth)
+            sub = _layered(
+                scene, band.layers, step.profile, cache, p.occlusion, p.edge_inv_depth, step.scale
+            )
             if step.scale != 1.0:
                 sub = _scale(sub, step.scale)
             image += np.asarray(step.weight, dtype=out.dtype) * sub
@@ -121,10 +123,14 @@ def render(
     return out if scene.channels_axis else out[:, :, 0]
 
 
-def _layered(scene, layers, profile, cache, occlusion, edge) -> np.ndarray:
-    """Blur each depth layer by its kernel and composite (module notes)."""
+def _layered(scene, layers, profile, cache, occlusion, edge, scale=1.0) -> np.ndarray:
+    """Blur each depth layer by its kernel and composite (module notes).
+
+    ``scale``: the step is scaled by it afterwards, so its kernels are in grid pixels
+    (Eq. 2's detector blur divided by ``scale``).
+    """
     dtype = scene.dtype
-    kernels = [cache.kernel(layer.inv_rep, profile).astype(dtype) for layer in layers]
+    kernels = [cache.kernel(layer.inv_rep, profile, scale).astype(dtype) for layer in layers]
     pad = max(k.shape[0] // 2 for k in kernels)
     ends = np.array([layer.inv_hi for layer in layers])
     ordered = sorted(scene.surfaces, key=lambda s: -float(np.median(s.depth_mm)))  # far first
