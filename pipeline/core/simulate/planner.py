@@ -11,7 +11,6 @@ import math
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
 
 from pipeline.core import optics, psf, spectra, validate
 from pipeline.core.lens import Lens
@@ -255,17 +254,38 @@ def _partition(present, lo, hi, dist, tol, *, integer: bool):
     return parts, worst + gap
 
 
-def _layers(present, profile, cache: _KernelCache, tol):
-    lo, hi = float(present[0]), float(present[-1])
+def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
+    """Present inverse depths split into groups of surfaces whose depth ranges overlap.
 
+    Layers never span two groups: two planes whose kernels happen to agree (focus between
+    them) stay in separate layers, so that the nearer one can occlude the farther.
+    """
+    spans = sorted(
+        (float(inv.min()), float(inv.max()))
+        for inv in (1.0 / s.depth_mm[s.alpha > 0] for s in scene.surfaces)
+        if inv.size
+    )
+    merged: list[list[float]] = []
+    for lo, hi in spans:
+        if merged and lo <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    return [present[(present >= lo) & (present <= hi)] for lo, hi in merged]
+
+
+def _layers(groups, profile, cache: _KernelCache, tol):
     def dist(a, b):
         return cache.spectra.error(cache.spectrum(a, profile) - cache.spectrum(b, profile))
 
-    parts, worst = _partition(present, lo, hi, dist, tol, integer=False)
-    layers, start = [], -math.inf
-    for end, rep in parts:
-        layers.append(Layer(start, end, rep))
-        start = end
+    layers, start, worst = [], -math.inf, 0.0
+    for present in groups:
+        lo, hi = float(present[0]), float(present[-1])
+        parts, err = _partition(present, lo, hi, dist, tol, integer=False)
+        worst = max(worst, err)
+        for end, rep in parts:
+            layers.append(Layer(start, end, rep))
+            start = end
     return tuple(layers), worst
 
 
@@ -334,18 +354,57 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
     return _steps(profile, p_ref, n), err, True, n
 
 
-def _edges(scene: Scene, edge: float, radius: int) -> tuple[int, float]:
-    """Pixels whose neighbourhood (blur radius) holds depths nearer by more than ``edge``."""
-    size = 2 * radius + 1
-    hi = lo = None
+_NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+
+
+def _neighbour(a: np.ndarray, dy: int, dx: int, fill) -> np.ndarray:
+    """``a`` shifted so that each pixel sees its ``(dy, dx)`` neighbour (``fill`` outside)."""
+    p = np.pad(a, 1, mode="constant", constant_values=fill)
+    r, c = a.shape
+    return p[1 + dy : 1 + dy + r, 1 + dx : 1 + dx + c]
+
+
+def _edges(scene: Scene, k: float) -> tuple[np.ndarray, float]:
+    """Depth-edge pixels and the largest blur-radius jump (px) between neighbours.
+
+    ``k = (a/2) p / pitch`` is the blur radius in px per unit inverse depth (Eq. 2). On one
+    surface a pixel is an edge iff ``k max|D - D'|`` over its 8 neighbours exceeds 1: where
+    the blur radius changes by less than 1 px per px, every ray through the aperture meets
+    the surface exactly once (no self-occlusion, the plain sum of layers is exact). Between
+    surfaces, the nearer surface's silhouette (alpha < 1 or a neighbour outside it) over a
+    farther surface is an edge where ``k (D_near - D_far) > 0.5``.
+    """
+    mask = np.zeros(scene.shape, bool)
+    worst = 0.0
+    invs = []
     for s in scene.surfaces:
-        inv = np.where(s.alpha > 0, 1.0 / s.depth_mm, np.nan)
-        mx = ndimage.maximum_filter(np.nan_to_num(inv, nan=-np.inf), size=size, mode="reflect")
-        mn = np.where(np.isnan(inv), np.inf, inv)
-        hi = mx if hi is None else np.maximum(hi, mx)
-        lo = mn if lo is None else np.minimum(lo, mn)
-    jump = np.where(np.isfinite(lo), hi - lo, 0.0)
-    return int(np.count_nonzero(jump > edge)), float(jump.max())
+        valid = s.alpha > 0
+        inv = np.where(valid, 1.0 / s.depth_mm, np.nan)
+        invs.append(inv)
+        jump = np.zeros(scene.shape)
+        for dy, dx in _NEIGHBOURS:
+            d = np.abs(inv - _neighbour(inv, dy, dx, np.nan))
+            jump = np.fmax(jump, np.nan_to_num(d, nan=0.0))
+        jump *= k
+        worst = max(worst, float(jump.max()))
+        mask |= valid & (jump > 1.0)
+    for j, s in enumerate(scene.surfaces):
+        valid = s.alpha > 0
+        outside = np.zeros(scene.shape, bool)
+        for dy, dx in _NEIGHBOURS:
+            outside |= ~_neighbour(valid, dy, dx, True)
+        rim = valid & ((s.alpha < 1) | outside)
+        if not rim.any():
+            continue
+        for i in range(len(scene.surfaces)):
+            if i == j:
+                continue
+            step = k * np.nan_to_num(invs[j] - invs[i], nan=0.0)
+            hit = rim & (step > 0.5)
+            if hit.any():
+                worst = max(worst, float(step[hit].max()))
+                mask |= hit
+    return mask, worst
 
 
 def plan(
@@ -453,9 +512,10 @@ def plan(
         effects.append(Effect("rolling-shutter rows", False, "global shutter", 0.0))
 
     p_ref = camera.reference_mm
+    groups = _groups(scene, present)
     bands, layer_err, mag_err, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
     for r0, r1, prof in band_specs:
-        layers, err = _layers(present, prof, cache, tolerance)
+        layers, err = _layers(groups, prof, cache, tolerance)
         layer_err = max(layer_err, err)
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
@@ -485,18 +545,19 @@ def plan(
 
     a_p = lens.aperture_mm * float(p_all.max()) / lens.pixel_pitch_mm  # d b_px / d D (Eq. 2)
     edge = EDGE_BLUR_PX / a_p
-    n_edge, jump = _edges(scene, edge, size // 2)
+    edge_mask, jump = _edges(scene, 0.5 * a_p)
+    n_edge = int(np.count_nonzero(edge_mask))
     if occlusion is None:
         occlusion = n_edge > 0
     if n_edge == 0:
         reason = (
-            f"no depth edges (no depth step > {edge * 1e3:.3g} dpt = {EDGE_BLUR_PX:g} px "
-            "of blur within a blur radius): plain sum of layers"
+            f"no depth edges (the blur radius changes by at most {jump:.3g} px per px; "
+            "every ray meets the scene once): plain sum of layers"
         )
         est = 0.0
     else:
         reason = (
-            f"{n_edge} px near depth edges (steps up to {jump * a_p:.3g} px of blur): "
+            f"{n_edge} px on depth edges (the blur radius jumps up to {jump:.3g} px): "
             "back-to-front 'over' compositing"
         )
         est = float(max(np.max(s.radiance) for s in scene.surfaces))
