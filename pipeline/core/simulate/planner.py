@@ -87,6 +87,7 @@ class Layer:
     inv_lo: float
     inv_hi: float
     inv_rep: float
+    group: int = 0  # layers of one group (overlapping surface depth ranges) interpolate
 
     @property
     def depth_mm(self) -> float:
@@ -279,12 +280,12 @@ def _layers(groups, profile, cache: _KernelCache, tol):
         return cache.spectra.error(cache.spectrum(a, profile) - cache.spectrum(b, profile))
 
     layers, start, worst = [], -math.inf, 0.0
-    for present in groups:
+    for g, present in enumerate(groups):
         lo, hi = float(present[0]), float(present[-1])
         parts, err = _partition(present, lo, hi, dist, tol, integer=False)
         worst = max(worst, err)
         for end, rep in parts:
-            layers.append(Layer(start, end, rep))
+            layers.append(Layer(start, end, rep, g))
             start = end
     return tuple(layers), worst
 

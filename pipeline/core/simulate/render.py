@@ -136,13 +136,16 @@ def _layered(scene, layers, profile, cache, occlusion, edge, scale=1.0) -> np.nd
     ordered = sorted(scene.surfaces, key=lambda s: -float(np.median(s.depth_mm)))  # far first
     padded = []
     for s in ordered:
-        idx = np.searchsorted(ends, 1.0 / s.depth_mm, side="left").clip(0, len(layers) - 1)
+        inv = 1.0 / s.depth_mm
+        idx = np.searchsorted(ends, inv, side="left").clip(0, len(layers) - 1)
         widths = ((pad, pad), (pad, pad))
+        hat = None if occlusion else _hat(inv, layers, idx)
         padded.append(
             (
                 np.pad(s.radiance * s.alpha[:, :, None], (*widths, (0, 0)), mode="reflect"),
                 np.pad(s.alpha, widths, mode="reflect"),
                 np.pad(idx, widths, mode="reflect"),
+                None if hat is None else tuple(np.pad(h, widths, mode="reflect") for h in hat),
             )
         )
     shape = padded[0][1].shape
@@ -154,7 +157,14 @@ def _layered(scene, layers, profile, cache, occlusion, edge, scale=1.0) -> np.nd
         coverage = np.zeros(shape, dtype=dtype)
         pending: list = []
     for i in range(len(layers) - 1, -1, -1):  # near to far
-        masks = [(idx == i) & (a > 0) for _, a, idx in padded]
+        if occlusion:
+            weights = [((idx == i) & (a > 0)).astype(dtype) for _, a, idx, _ in padded]
+        else:  # hat functions: each pixel split between its two nearest representatives
+            weights = [
+                np.where(a > 0, np.where(lo == i, 1 - th, 0) + np.where(lo + 1 == i, th, 0), 0)
+                for _, a, _, (lo, th) in padded
+            ]
+        masks = [w > 0 for w in weights]
         union = np.logical_or.reduce(masks)
         if not union.any():
             continue
@@ -164,10 +174,10 @@ def _layered(scene, layers, profile, cache, occlusion, edge, scale=1.0) -> np.nd
         c0, c1 = max(cc[0] - h, 0), min(cc[-1] + h + 1, shape[1])
         color = np.zeros((r1 - r0, c1 - c0, channels), dtype=dtype)
         alpha = np.zeros((r1 - r0, c1 - c0), dtype=dtype)
-        for (c, a, _), m in zip(padded, masks):  # far to near within the layer: "over"
-            m = m[r0:r1, c0:c1]
-            a_here = np.where(m, a[r0:r1, c0:c1], 0)
-            color = np.where(m[:, :, None], c[r0:r1, c0:c1], 0) + (1 - a_here)[:, :, None] * color
+        for (c, a, _, _), w in zip(padded, weights):  # far to near within the layer: "over"
+            w = w[r0:r1, c0:c1].astype(dtype)
+            a_here = w * a[r0:r1, c0:c1]
+            color = w[:, :, None] * c[r0:r1, c0:c1] + (1 - a_here)[:, :, None] * color
             alpha = a_here + (1 - a_here) * alpha
         block = np.concatenate([color, alpha[:, :, None]], axis=2) if occlusion else color
         blurred = signal.oaconvolve(block, kernels[i][:, :, None], mode="same", axes=(0, 1))
@@ -190,6 +200,28 @@ def _layered(scene, layers, profile, cache, occlusion, edge, scale=1.0) -> np.nd
             factor = np.where(covered > 1e-6, np.maximum(lost, 1), 0).astype(dtype)
         out *= factor[:, :, None]
     return out[pad : shape[0] - pad, pad : shape[1] - pad]
+
+
+def _hat(inv: np.ndarray, layers, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hat-function split: ``(lo, theta)``, weight ``1 - theta`` to layer ``lo`` and
+    ``theta`` to ``lo + 1``, linear in inverse depth between their representatives.
+
+    The kernel is then piecewise linear in D and continuous across layer boundaries (box
+    layers leave seams proportional to the mean radiance). Only within a group (layers of
+    different surfaces' depth ranges never mix); elsewhere the pixel keeps its box layer.
+    """
+    n = len(layers)
+    if n == 1:
+        return np.zeros(inv.shape, int), np.zeros(inv.shape)
+    reps = np.array([layer.inv_rep for layer in layers])
+    group = np.array([layer.group for layer in layers])
+    lo = (np.searchsorted(reps, inv, side="right") - 1).clip(0, n - 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta = np.clip((inv - reps[lo]) / (reps[lo + 1] - reps[lo]), 0.0, 1.0)
+    same = group[lo] == group[lo + 1]
+    box_theta = (idx == lo + 1).astype(float)
+    theta = np.where(same, np.nan_to_num(theta), box_theta)
+    return lo, theta
 
 
 def _scale(image: np.ndarray, scale: float) -> np.ndarray:
