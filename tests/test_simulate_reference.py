@@ -126,19 +126,19 @@ TODAY_FAILS = pytest.mark.xfail(strict=True, reason="issue 14: the plan's estima
 @pytest.mark.parametrize(
     ("name", "tol"),
     [
-        pytest.param("ramp static narrow", 1e-2, marks=TODAY_FAILS),
-        pytest.param("ramp static narrow", 1e-3, marks=TODAY_FAILS),
-        pytest.param("ramp static narrow", 1e-4, marks=TODAY_FAILS),
+        ("ramp static narrow", 1e-2),
+        ("ramp static narrow", 1e-3),
+        ("ramp static narrow", 1e-4),
         ("stack frame", 1e-3),
-        pytest.param("ramp sweep", 1e-2, marks=TODAY_FAILS),
-        pytest.param("ramp sweep", 1e-3, marks=TODAY_FAILS),
+        ("ramp sweep", 1e-2),
+        ("ramp sweep", 1e-3),
         pytest.param("edge focus between", 1e-2, marks=TODAY_FAILS),
         pytest.param("edge focus between", 1e-3, marks=TODAY_FAILS),
         pytest.param("edge focus between", 1e-4, marks=TODAY_FAILS),
         pytest.param("edge sweep", 1e-2, marks=TODAY_FAILS),
         pytest.param("edge sweep", 1e-3, marks=TODAY_FAILS),
-        pytest.param("wide-angle", 1e-2, marks=TODAY_FAILS),
-        pytest.param("wide-angle", 1e-3, marks=TODAY_FAILS),
+        ("wide-angle", 1e-2),
+        ("wide-angle", 1e-3),
     ],
 )
 def test_measured_error_within_estimate(name, tol):

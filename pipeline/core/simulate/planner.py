@@ -290,6 +290,47 @@ def _layers(groups, profile, cache: _KernelCache, tol):
     return tuple(layers), worst
 
 
+def _hat_error(groups, layers, steps, cache: _KernelCache, shape) -> float:
+    """Estimated error of the hat-function layers as rendered (``render._hat``).
+
+    At the present depth nearest the middle between each two neighbouring representatives
+    (and at the depths beyond a group's end representatives, which keep the end kernel),
+    the image error of the interpolated kernel, summed over the sub-steps as they are
+    rendered: ``|| sum_s w_s (K_s(D) - (1 - t) K_s(a) - t K_s(b)) exp(-i w . delta_s) ||``
+    with each step's grid kernel (pitch x scale) and its displacement ``delta_s =
+    (scale_s - 1) r`` at the image's RMS radius ``r``.
+    """
+    spectra = cache.spectra
+    radius = np.array([shape[1], shape[0]]) / math.sqrt(12)
+    shifts = [spectra.shift(*((st.scale - 1) * radius)) for st in steps]
+
+    def err(d, terms):
+        total = 0
+        for st, sh in zip(steps, shifts):
+            k = cache.spectrum(d, st.profile, st.scale)
+            for w, r in terms:
+                k = k - w * cache.spectrum(r, st.profile, st.scale)
+            total = total + st.weight * (k if len(steps) == 1 else k * sh)
+        return spectra.error(total)
+
+    worst = 0.0
+    for g, present in enumerate(groups):
+        reps = [layer.inv_rep for layer in layers if layer.group == g]
+        for end, beyond in ((reps[0], present[present < reps[0]]),
+                            (reps[-1], present[present > reps[-1]])):
+            if beyond.size:
+                far = beyond[0] if end == reps[0] else beyond[-1]
+                worst = max(worst, err(float(far), [(1.0, end)]))
+        for a, b in itertools.pairwise(reps):
+            inside = present[(present > a) & (present < b)]
+            if not inside.size:
+                continue
+            d = float(inside[np.argmin(np.abs(inside - 0.5 * (a + b)))])
+            t = (d - a) / (b - a)
+            worst = max(worst, err(d, [(1 - t, a), (t, b)]))
+    return worst
+
+
 def _blur_px(lens: Lens, inv: float, p_mm: np.ndarray) -> np.ndarray:
     v = optics.image_distance(lens.focal_length_mm, _depth(inv))
     return lens.blur_px(v, p_mm)
@@ -512,12 +553,17 @@ def plan(
         band_specs = [(0, rows, camera.motion)]
         effects.append(Effect("rolling-shutter rows", False, "global shutter", 0.0))
 
+    a_p = lens.aperture_mm * float(p_all.max()) / lens.pixel_pitch_mm  # d b_px / d D (Eq. 2)
+    edge = EDGE_BLUR_PX / a_p
+    edge_mask, jump = _edges(scene, 0.5 * a_p)
+    n_edge = int(np.count_nonzero(edge_mask))
+    if occlusion is None:
+        occlusion = n_edge > 0
     p_ref = camera.reference_mm
     groups = _groups(scene, present)
     bands, layer_err, mag_err, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
     for r0, r1, prof in band_specs:
         layers, err = _layers(groups, prof, cache, tolerance)
-        layer_err = max(layer_err, err)
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
                 prof, layers, lens, model, spectra, p_ref, (rows, cols), tolerance
@@ -526,6 +572,10 @@ def plan(
             steps, m_err, m_app, n = _forced_steps(prof, p_ref, magnification_steps)
         mag_err, mag_applied = max(mag_err, m_err), mag_applied or m_app
         mag_steps = max(mag_steps, n)
+        if occlusion:
+            layer_err = max(layer_err, err)  # box layers (occlusion compositing)
+        else:
+            layer_err = max(layer_err, _hat_error(groups, layers, steps, cache, (rows, cols)))
         bands.append(Band(r0, r1, prof, layers, steps))
     n_layers = max(len(b.layers) for b in bands)
     span = f"{_depth(present[-1]):.6g}-{_depth(present[0]):.6g} mm"
@@ -544,12 +594,6 @@ def plan(
         reason = f"image moves up to {corner_px:.3g} px at the corner: below the tolerance"
     effects.append(Effect("magnification", mag_applied, reason, mag_err))
 
-    a_p = lens.aperture_mm * float(p_all.max()) / lens.pixel_pitch_mm  # d b_px / d D (Eq. 2)
-    edge = EDGE_BLUR_PX / a_p
-    edge_mask, jump = _edges(scene, 0.5 * a_p)
-    n_edge = int(np.count_nonzero(edge_mask))
-    if occlusion is None:
-        occlusion = n_edge > 0
     if n_edge == 0:
         reason = (
             f"no depth edges (the blur radius changes by at most {jump:.3g} px per px; "
