@@ -120,7 +120,6 @@ def test_reference_converged():
 
 
 # ----------------------------------------------------------------------------- acceptance
-TODAY_FAILS = pytest.mark.xfail(strict=True, reason="issue 14: the plan's estimate is too low")
 
 
 @pytest.mark.parametrize(
@@ -132,11 +131,11 @@ TODAY_FAILS = pytest.mark.xfail(strict=True, reason="issue 14: the plan's estima
         ("stack frame", 1e-3),
         ("ramp sweep", 1e-2),
         ("ramp sweep", 1e-3),
-        pytest.param("edge focus between", 1e-2, marks=TODAY_FAILS),
-        pytest.param("edge focus between", 1e-3, marks=TODAY_FAILS),
-        pytest.param("edge focus between", 1e-4, marks=TODAY_FAILS),
-        pytest.param("edge sweep", 1e-2, marks=TODAY_FAILS),
-        pytest.param("edge sweep", 1e-3, marks=TODAY_FAILS),
+        ("edge focus between", 1e-2),
+        ("edge focus between", 1e-3),
+        ("edge focus between", 1e-4),
+        ("edge sweep", 1e-2),
+        ("edge sweep", 1e-3),
         ("wide-angle", 1e-2),
         ("wide-angle", 1e-3),
     ],
