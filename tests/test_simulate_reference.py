@@ -195,10 +195,9 @@ def plan_peak_bytes(rows: int) -> int:
         tracemalloc.stop()
 
 
-@pytest.mark.xfail(strict=True, reason="issue 14: rolling-shutter planning memory per row")
 def test_rolling_shutter_memory_linear_in_the_image():
-    """A 2x16 / 6x16 px capture needs 190 / 300 MB today (+27 MB per row, i.e.
-    52 GB for the paper's 1944 rows): at most 100 MB, and at most 5 MB per added row."""
+    """A 2x16 / 4x16 px capture: at most 100 MB, and at most 5 MB per added row (before
+    issue 14's fix 190 MB and +27 MB per row, i.e. 52 GB for the paper's 1944 rows)."""
     small, large = plan_peak_bytes(2), plan_peak_bytes(4)
     assert small < 100e6, small
     assert (large - small) / 2 < 5e6, (small, large)

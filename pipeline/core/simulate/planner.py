@@ -5,6 +5,7 @@ noise, each with its estimated error (:func:`plan`).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import math
@@ -180,13 +181,45 @@ def _present_inverse_depths(scene: Scene, lens: Lens) -> np.ndarray:
     return present
 
 
+class _Lru(collections.OrderedDict):
+    """A dict of arrays that drops its least recently used entries beyond ``budget`` bytes
+    (the plan of a rolling-shutter capture asks for spectra of thousands of row windows)."""
+
+    def __init__(self, budget: int) -> None:
+        super().__init__()
+        self.budget, self.nbytes = budget, 0
+
+    def __contains__(self, key) -> bool:
+        if super().__contains__(key):
+            self.move_to_end(key)
+            return True
+        return False
+
+    def __setitem__(self, key, value) -> None:
+        if super().__contains__(key):
+            self.nbytes -= self[key].nbytes
+        super().__setitem__(key, value)
+        self.nbytes += value.nbytes
+        while self.nbytes > self.budget and len(self) > 1:
+            _, old = self.popitem(last=False)
+            self.nbytes -= old.nbytes
+
+    def clear(self) -> None:
+        super().clear()
+        self.nbytes = 0
+
+
 class _KernelCache:
     """IPSF kernels and spectra per (inverse depth, motion window)."""
 
-    def __init__(self, lens: Lens, model: str, spectra: _Spectra) -> None:
+    def __init__(self, lens: Lens, model: str, spectra: _Spectra, budget: int = 48 << 20) -> None:
         self.lens, self.model, self.spectra = lens, model, spectra
-        self._k: dict = {}
-        self._s: dict = {}
+        self._k: _Lru = _Lru(budget)
+        self._s: _Lru = _Lru(budget)
+
+    def clear(self) -> None:
+        self._k.clear()
+        self._s.clear()
 
     def kernel(self, inv: float, profile: Profile, scale: float = 1.0) -> np.ndarray:
         """The IPSF in grid pixels of a sub-step later scaled by ``scale`` (``p / p_ref``).
@@ -200,13 +233,17 @@ class _KernelCache:
             lens = self.lens
             if scale != 1.0:
                 lens = dataclasses.replace(lens, pixel_pitch_um=lens.pixel_pitch_um * scale)
-            self._k[key] = psf.integrated_psf(lens, _depth(inv), profile, model=self.model)
+            kernel = psf.integrated_psf(lens, _depth(inv), profile, model=self.model)
+            self._k[key] = kernel
+            return kernel
         return self._k[key]
 
     def spectrum(self, inv: float, profile: Profile, scale: float = 1.0) -> np.ndarray:
         key = (inv, id(profile), scale)
         if key not in self._s:
-            self._s[key] = self.spectra.of(self.kernel(inv, profile, scale))
+            spectrum = self.spectra.of(self.kernel(inv, profile, scale))
+            self._s[key] = spectrum
+            return spectrum
         return self._s[key]
 
 
@@ -367,21 +404,16 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
         )
         // 2
     )
-    spectra_q = []
-    for inv in checks:
-        b = _blur_px(lens, inv, p)
-        spectra_q.append(
-            [spectra.of(psf.raster_lens_psf(model, bq, half, lens.gaussian_g)) for bq in b]
-        )
+    checks = sorted(checks)
 
     def error(step_of_node, step_shift):
         worst = 0.0
-        for ks in spectra_q:
-            diff = sum(
-                k * (spectra.shift(*(shifts[q] - step_shift[step_of_node[q]])) - 1)
-                for q, k in enumerate(ks)
-            )
-            worst = max(worst, spectra.error(diff / len(ks)))
+        for inv in checks:  # one check depth's node spectra at a time
+            diff = 0
+            for q, bq in enumerate(_blur_px(lens, inv, p)):
+                k = spectra.of(psf.raster_lens_psf(model, bq, half, lens.gaussian_g))
+                diff = diff + k * (spectra.shift(*(shifts[q] - step_shift[step_of_node[q]])) - 1)
+            worst = max(worst, spectra.error(diff / nodes))
         return worst
 
     skip_error = error(np.zeros(nodes, int), np.zeros((1, 2)))
@@ -632,6 +664,7 @@ def plan(
     groups = _groups(scene, present)
     bands, layer_err, mag_err, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
     for r0, r1, prof in band_specs:
+        cache.clear()  # a fresh cache per band: memory does not grow with the rows
         layers, err = _layers(groups, prof, cache, tolerance)
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
