@@ -689,6 +689,11 @@ def plan(
         reason = f"the whole depth range ({span}) is within the tolerance of one kernel"
     else:
         reason = f"{n_layers} layers over {span}, split in inverse depth by kernel_error"
+        reason += (
+            " (box layers: occlusion compositing)"
+            if occlusion
+            else "; hat-function interpolation, error checked over the sub-steps"
+        )
     effects.append(Effect("depth layers", n_layers > 1, reason, layer_err))
     corner_px = 0.5 * math.hypot(rows - 1, cols - 1) * float(np.max(np.abs(p_all / p_ref - 1)))
     if mag_applied:
