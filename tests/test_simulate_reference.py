@@ -136,6 +136,7 @@ def test_reference_converged():
         ("edge focus between", 1e-4),
         ("edge sweep", 1e-2),
         ("edge sweep", 1e-3),
+        ("edge sweep", 1e-4),
         ("wide-angle", 1e-2),
         ("wide-angle", 1e-3),
     ],
