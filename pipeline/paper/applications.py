@@ -38,7 +38,7 @@ from pipeline.core.motion import (
     plan_tilted_dof,
     row_offsets_mm,
 )
-from pipeline.core.scene import Camera, Exposure, Scene
+from pipeline.core.scene import Camera, Exposure, Scene, Surface
 from pipeline.errors import InputError
 from pipeline.io.profiles import load_lens
 from pipeline.jobs.sweep import sweep_kernel
@@ -196,21 +196,51 @@ def _render(scene: Scene, camera: Camera, plan_: simulate.Plan | None = None) ->
 
 
 def render_rolling(scene: Scene, camera: Camera, *, band_rows: int = 8) -> np.ndarray:
-    """A rolling-shutter capture (Sec. 6-7), by the simulator's rolling-shutter renderer.
+    """A rolling-shutter capture rendered band by band on crops of the scene (Sec. 6-7).
 
-    :func:`pipeline.core.simulate.plan` bands the rows whose exposure windows give IPSFs
-    within :data:`TOLERANCE` of each other (``band_rows=1``: every row its own window) and
-    :func:`pipeline.core.simulate.render` renders each band from its own rows plus a
-    margin, so the cost grows with the image, not rows x frame. Magnification (``p / p_ref``
-    per row, a few px at the applications' sizes) is not simulated, as before. One
-    renderer: this is a thin wrapper kept for the applications' callers.
+    Rows ``[r0, r0 + band_rows)`` integrate the motion over their middle row's window
+    (:meth:`pipeline.core.scene.Camera.row_windows`); each band is rendered by
+    :func:`pipeline.core.simulate.render.render` as a global-shutter capture of that window on
+    the band's rows plus the largest blur radius above and below, so its cost grows
+    with the band's rows, not the frame's. Magnification (``p / p_ref``, under 2 px
+    here) is not simulated. :func:`pipeline.core.simulate.render.render` with a rolling shutter
+    gives the same image up to that and its tolerance (tests compare them).
     """
     if isinstance(band_rows, bool) or not isinstance(band_rows, int) or band_rows < 1:
         raise InputError(f"band_rows must be a positive integer, got {band_rows!r}")
-    p = simulate.plan(
-        scene, camera, tolerance=TOLERANCE, magnification_steps=0, per_row=band_rows == 1
-    )
-    return simulate.render(scene, camera, plan_=p)
+    lens = camera.lens
+    rows = scene.shape[0]
+    windows = camera.row_windows(rows)
+    v = np.concatenate([
+        np.atleast_1d(optics.image_distance(lens.focal_length_mm, s.depth_mm[s.alpha > 0]))
+        for s in scene.surfaces
+    ])
+    p_lo, p_hi = camera.motion.range_mm
+    blur_px = max(np.max(lens.blur_px(v, p_lo)), np.max(lens.blur_px(v, p_hi)))
+    margin = math.ceil(blur_px / 2) + 2
+    out = None
+    for r0 in range(0, rows, band_rows):
+        r1 = min(rows, r0 + band_rows)
+        c0, c1 = max(0, r0 - margin), min(rows, r1 + margin)
+        crop = Scene(
+            tuple(
+                Surface(s.radiance[c0:c1], s.alpha[c0:c1], s.depth_mm[c0:c1])
+                for s in scene.surfaces
+            ),
+            scene.channels_axis,
+        )
+        band = Camera(
+            lens,
+            camera.motion.window(*windows[(r0 + r1 - 1) // 2]),
+            shutter="global",
+            psf_model=camera.psf_model,
+        )
+        p = simulate.plan(crop, band, tolerance=TOLERANCE, magnification_steps=0)
+        image = simulate.render(crop, band, plan_=p)
+        if out is None:
+            out = np.empty((rows, *image.shape[1:]), dtype=image.dtype)
+        out[r0:r1] = image[r0 - c0 : r1 - c0]
+    return out
 
 
 def _v(lens: Lens, depth_mm: float) -> float:
