@@ -22,18 +22,24 @@ The image-formation model
 Depth is split into layers in inverse depth ``D = 1/u`` (1/mm; the blur diameter of Eq. 2
 is piecewise linear in D): a layer ends where its kernel (the IPSF of Eq. 5 at its
 representative depth) would differ from a member depth's kernel by more than the tolerance.
-Each layer's premultiplied radiance ``L alpha`` and ``alpha`` are blurred by the layer's
-kernel (FFT, reflect padding) into ``C_i`` and ``A_i``. Occlusion: a layer is covered by
-every layer nearer than it by more than ``edge`` in D (a *depth edge*: the blur diameter
-changes by more than :data:`EDGE_BLUR_PX` px), composited "over" back to front::
+Layers never span two surfaces whose depth ranges do not overlap. Without occlusion each
+pixel is split between the two nearest representatives with hat-function weights linear
+in D (the kernel is continuous across layer boundaries: no seams), and the image is the
+plain sum of the layers' blurred premultiplied radiance ``L alpha``.
+
+Occlusion only happens at *depth edges*: where the blur radius changes by more than 1 px
+per px (``k max|D - D'| > 1`` over the 8 neighbours, ``k = (a/2) p / pitch``), or at the
+silhouette of a nearer surface over a farther one; elsewhere every ray through the
+aperture meets the scene once and the plain sum is exact. With edges, box layers are
+composited "over" back to front, a layer covered by every layer nearer by more than
+``edge`` in D::
 
     out = sum_i C_i T_i,  T_i = prod_{j: D_j > D_i + edge} (1 - A_j)
     out *= max(1, min(1, sum_i A_i) / sum_i A_i T_i)    (coverage renormalisation)
 
-The renormalisation only brightens, where the composited coverage falls below the scene's
-own coverage (self-overlap of a steep continuous surface); at a true edge of opaque
-surfaces ``sum_i A_i T_i = 1`` already, and without occluders it is 1. Without depth
-edges the model is the plain sum of layers.
+The over model misses partial occlusion (a pixel's aperture split by the edge when both
+sides are out of focus); the plan estimates that error with an exact straight-edge trace
+(:mod:`pipeline.core.simulate.edge`).
 
 Magnification: the image scales by ``p(t) / p_ref`` about the centre (Sec. 3, footnote 1);
 when it matters the exposure is cut into sub-steps, each rendered with its own IPSF and
