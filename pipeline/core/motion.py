@@ -91,8 +91,9 @@ class Profile:
             raise InputError(
                 f"window [{start_s}, {end_s}] s is not inside the exposure [{t0}, {t1}] s"
             )
-        inner = self.times_s[(self.times_s > start_s) & (self.times_s < end_s)]
-        times = np.concatenate(([start_s], inner, [min(end_s, t1)]))
+        start, end = max(float(start_s), float(t0)), min(float(end_s), float(t1))
+        inner = self.times_s[(self.times_s > start) & (self.times_s < end)]
+        times = np.concatenate(([start], inner, [end]))
         return Profile(times, self.position(times))
 
     def shifted(self, delay_s: float) -> Profile:

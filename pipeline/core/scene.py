@@ -327,5 +327,6 @@ class Camera:
                 f"(row_exposure_s={self.row_exposure_s!r})"
             )
         return [
-            (t0 + r * self.line_time_s, t0 + r * self.line_time_s + exposure) for r in range(rows)
+            (t0 + r * self.line_time_s, min(t0 + r * self.line_time_s + exposure, t1))
+            for r in range(rows)
         ]

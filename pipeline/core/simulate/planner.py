@@ -5,13 +5,13 @@ noise, each with its estimated error (:func:`plan`).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import itertools
 import math
 
 import numpy as np
 from scipy import fft as sfft
-from scipy import ndimage
 
 from pipeline.core import optics, psf, spectra, validate
 from pipeline.core.lens import Lens
@@ -53,7 +53,8 @@ class _Spectra:
         return float(np.sqrt(np.sum((diff.real**2 + diff.imag**2) * self.weights)))
 
     def shift(self, dx: float, dy: float) -> np.ndarray:
-        return np.exp(-2j * np.pi * (self.fx * dx + self.fy * dy))
+        # separable: two 1-D exponentials instead of one per frequency
+        return np.exp(-2j * np.pi * self.fy * dy) * np.exp(-2j * np.pi * self.fx * dx)
 
 
 def kernel_error(k1: np.ndarray, k2: np.ndarray) -> float:
@@ -88,6 +89,7 @@ class Layer:
     inv_lo: float
     inv_hi: float
     inv_rep: float
+    group: int = 0  # layers of one group (overlapping surface depth ranges) interpolate
 
     @property
     def depth_mm(self) -> float:
@@ -180,24 +182,69 @@ def _present_inverse_depths(scene: Scene, lens: Lens) -> np.ndarray:
     return present
 
 
+class _Lru(collections.OrderedDict):
+    """A dict of arrays that drops its least recently used entries beyond ``budget`` bytes
+    (the plan of a rolling-shutter capture asks for spectra of thousands of row windows)."""
+
+    def __init__(self, budget: int) -> None:
+        super().__init__()
+        self.budget, self.nbytes = budget, 0
+
+    def __contains__(self, key) -> bool:
+        if super().__contains__(key):
+            self.move_to_end(key)
+            return True
+        return False
+
+    def __setitem__(self, key, value) -> None:
+        if super().__contains__(key):
+            self.nbytes -= self[key].nbytes
+        super().__setitem__(key, value)
+        self.nbytes += value.nbytes
+        while self.nbytes > self.budget and len(self) > 1:
+            _, old = self.popitem(last=False)
+            self.nbytes -= old.nbytes
+
+    def clear(self) -> None:
+        super().clear()
+        self.nbytes = 0
+
+
 class _KernelCache:
     """IPSF kernels and spectra per (inverse depth, motion window)."""
 
-    def __init__(self, lens: Lens, model: str, spectra: _Spectra) -> None:
+    def __init__(self, lens: Lens, model: str, spectra: _Spectra, budget: int = 48 << 20) -> None:
         self.lens, self.model, self.spectra = lens, model, spectra
-        self._k: dict = {}
-        self._s: dict = {}
+        self._k: _Lru = _Lru(budget)
+        self._s: _Lru = _Lru(budget)
 
-    def kernel(self, inv: float, profile: Profile) -> np.ndarray:
-        key = (inv, id(profile))
+    def clear(self) -> None:
+        self._k.clear()
+        self._s.clear()
+
+    def kernel(self, inv: float, profile: Profile, scale: float = 1.0) -> np.ndarray:
+        """The IPSF in grid pixels of a sub-step later scaled by ``scale`` (``p / p_ref``).
+
+        The detector blur of Eq. 2 is ``b`` detector px; the step is rendered on the
+        reference grid and then scaled by ``scale``, so its kernel is ``b / scale`` grid px:
+        the pitch times ``scale``.
+        """
+        key = (inv, id(profile), scale)
         if key not in self._k:
-            self._k[key] = psf.integrated_psf(self.lens, _depth(inv), profile, model=self.model)
+            lens = self.lens
+            if scale != 1.0:
+                lens = dataclasses.replace(lens, pixel_pitch_um=lens.pixel_pitch_um * scale)
+            kernel = psf.integrated_psf(lens, _depth(inv), profile, model=self.model)
+            self._k[key] = kernel
+            return kernel
         return self._k[key]
 
-    def spectrum(self, inv: float, profile: Profile) -> np.ndarray:
-        key = (inv, id(profile))
+    def spectrum(self, inv: float, profile: Profile, scale: float = 1.0) -> np.ndarray:
+        key = (inv, id(profile), scale)
         if key not in self._s:
-            self._s[key] = self.spectra.of(self.kernel(inv, profile))
+            spectrum = self.spectra.of(self.kernel(inv, profile, scale))
+            self._s[key] = spectrum
+            return spectrum
         return self._s[key]
 
 
@@ -246,18 +293,82 @@ def _partition(present, lo, hi, dist, tol, *, integer: bool):
     return parts, worst + gap
 
 
-def _layers(present, profile, cache: _KernelCache, tol):
-    lo, hi = float(present[0]), float(present[-1])
+def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
+    """Present inverse depths split into groups of surfaces whose depth ranges overlap.
 
+    Layers never span two groups: two planes whose kernels happen to agree (focus between
+    them) stay in separate layers, so that the nearer one can occlude the farther.
+    """
+    spans = sorted(
+        (float(inv.min()), float(inv.max()))
+        for inv in (1.0 / s.depth_mm[s.alpha > 0] for s in scene.surfaces)
+        if inv.size
+    )
+    merged: list[list[float]] = []
+    for lo, hi in spans:
+        if merged and lo <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], hi)
+        else:
+            merged.append([lo, hi])
+    return [present[(present >= lo) & (present <= hi)] for lo, hi in merged]
+
+
+def _layers(groups, profile, cache: _KernelCache, tol):
     def dist(a, b):
         return cache.spectra.error(cache.spectrum(a, profile) - cache.spectrum(b, profile))
 
-    parts, worst = _partition(present, lo, hi, dist, tol, integer=False)
-    layers, start = [], -math.inf
-    for end, rep in parts:
-        layers.append(Layer(start, end, rep))
-        start = end
+    layers, start, worst = [], -math.inf, 0.0
+    for g, present in enumerate(groups):
+        lo, hi = float(present[0]), float(present[-1])
+        parts, err = _partition(present, lo, hi, dist, tol, integer=False)
+        worst = max(worst, err)
+        for end, rep in parts:
+            layers.append(Layer(start, end, rep, g))
+            start = end
     return tuple(layers), worst
+
+
+def _hat_error(groups, layers, steps, cache: _KernelCache, shape) -> float:
+    """Estimated error of the hat-function layers as rendered (``render._hat``).
+
+    At the present depth nearest the middle between each two neighbouring representatives
+    (and at the depths beyond a group's end representatives, which keep the end kernel),
+    the image error of the interpolated kernel, summed over the sub-steps as they are
+    rendered: ``|| sum_s w_s (K_s(D) - (1 - t) K_s(a) - t K_s(b)) exp(-i w . delta_s) ||``
+    with each step's grid kernel (pitch x scale) and its displacement ``delta_s =
+    (scale_s - 1) r`` at the image's RMS radius ``r``.
+    """
+    spectra = cache.spectra
+    radius = np.array([shape[1], shape[0]]) / math.sqrt(12)
+    shifts = [spectra.shift(*((st.scale - 1) * radius)) for st in steps]
+
+    def err(d, terms):
+        total = 0
+        for st, sh in zip(steps, shifts):
+            k = cache.spectrum(d, st.profile, st.scale)
+            for w, r in terms:
+                k = k - w * cache.spectrum(r, st.profile, st.scale)
+            total = total + st.weight * (k if len(steps) == 1 else k * sh)
+        return spectra.error(total)
+
+    worst = 0.0
+    for g, present in enumerate(groups):
+        reps = [layer.inv_rep for layer in layers if layer.group == g]
+        for end, beyond in (
+            (reps[0], present[present < reps[0]]),
+            (reps[-1], present[present > reps[-1]]),
+        ):
+            if beyond.size:
+                far = beyond[0] if end == reps[0] else beyond[-1]
+                worst = max(worst, err(float(far), [(1.0, end)]))
+        for a, b in itertools.pairwise(reps):
+            inside = present[(present > a) & (present < b)]
+            if not inside.size:
+                continue
+            d = float(inside[np.argmin(np.abs(inside - 0.5 * (a + b)))])
+            t = (d - a) / (b - a)
+            worst = max(worst, err(d, [(1 - t, a), (t, b)]))
+    return worst
 
 
 def _blur_px(lens: Lens, inv: float, p_mm: np.ndarray) -> np.ndarray:
@@ -271,10 +382,13 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
     edges = np.linspace(t0, t1, _MAG_NODES + 1)
     t_mid = 0.5 * (edges[1:] + edges[:-1])
     p = profile.position(t_mid)
-    corner = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
+    # The image's RMS radius per axis (a uniform grid: size / sqrt(12)): the error of a
+    # displacement (s - 1) r is linear in r for small shifts, so its RMS over the image is
+    # the error at the RMS radius (the corner overstates it 2-3x).
+    radius = np.array([shape[1], shape[0]]) / math.sqrt(12)
     if np.ptp(p) == 0:  # static: one node
         p = p[:1]
-    shifts = corner[None, :] * (p / p_ref - 1)[:, None]  # px at the sensor corner
+    shifts = radius[None, :] * (p / p_ref - 1)[:, None]  # px at the RMS radius
     if np.max(np.abs(shifts)) < 1e-9:
         return (Step(profile, 1.0, 1.0),), 0.0, False, 1
     nodes = p.size
@@ -291,21 +405,18 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
         )
         // 2
     )
-    spectra_q = []
-    for inv in checks:
-        b = _blur_px(lens, inv, p)
-        spectra_q.append(
-            [spectra.of(psf.raster_lens_psf(model, bq, half, lens.gaussian_g)) for bq in b]
-        )
+    checks = sorted(checks, key=lambda d: float(_blur_px(lens, d, p).min()))  # sharpest first
 
-    def error(step_of_node, step_shift):
+    def error(step_of_node, step_shift, stop=math.inf):
         worst = 0.0
-        for ks in spectra_q:
-            diff = sum(
-                k * (spectra.shift(*(shifts[q] - step_shift[step_of_node[q]])) - 1)
-                for q, k in enumerate(ks)
-            )
-            worst = max(worst, spectra.error(diff / len(ks)))
+        for inv in checks:  # one check depth's node spectra at a time
+            diff = 0
+            for q, bq in enumerate(_blur_px(lens, inv, p)):
+                k = spectra.of(psf.raster_lens_psf(model, bq, half, lens.gaussian_g))
+                diff = diff + k * (spectra.shift(*(shifts[q] - step_shift[step_of_node[q]])) - 1)
+            worst = max(worst, spectra.error(diff / nodes))
+            if worst > stop:
+                break  # already above the tolerance: this candidate fails
         return worst
 
     skip_error = error(np.zeros(nodes, int), np.zeros((1, 2)))
@@ -315,25 +426,132 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, tol):
     while True:
         step_of_node = np.arange(nodes) * n // nodes
         step_shift = np.array([shifts[step_of_node == s].mean(axis=0) for s in range(n)])
-        err = error(step_of_node, step_shift)
-        if err <= tol or n >= min(MAX_MAGNIFICATION_STEPS, nodes):
+        last = n >= min(MAX_MAGNIFICATION_STEPS, nodes)
+        err = error(step_of_node, step_shift, math.inf if last else tol)
+        if err <= tol or last:
             break
         n = min(2 * n, nodes)  # at most one step per time node: no empty steps
     return _steps(profile, p_ref, n), err, True, n
 
 
-def _edges(scene: Scene, edge: float, radius: int) -> tuple[int, float]:
-    """Pixels whose neighbourhood (blur radius) holds depths nearer by more than ``edge``."""
-    size = 2 * radius + 1
-    hi = lo = None
+_NEIGHBOURS = [(dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1) if (dy, dx) != (0, 0)]
+
+
+def _neighbour(a: np.ndarray, dy: int, dx: int, fill) -> np.ndarray:
+    """``a`` shifted so that each pixel sees its ``(dy, dx)`` neighbour (``fill`` outside)."""
+    p = np.pad(a, 1, mode="constant", constant_values=fill)
+    r, c = a.shape
+    return p[1 + dy : 1 + dy + r, 1 + dx : 1 + dx + c]
+
+
+def _edges(scene: Scene, k: float) -> tuple[np.ndarray, float]:
+    """Depth-edge pixels and the largest blur-radius jump (px) between neighbours.
+
+    ``k = (a/2) p / pitch`` is the blur radius in px per unit inverse depth (Eq. 2). On one
+    surface a pixel is an edge iff ``k max|D - D'|`` over its 8 neighbours exceeds 1: where
+    the blur radius changes by less than 1 px per px, every ray through the aperture meets
+    the surface exactly once (no self-occlusion, the plain sum of layers is exact). Between
+    surfaces, the nearer surface's silhouette (alpha < 1 or a neighbour outside it) over a
+    farther surface is an edge where ``k (D_near - D_far) > 0.5``.
+    """
+    mask = np.zeros(scene.shape, bool)
+    worst = 0.0
+    invs = []
     for s in scene.surfaces:
-        inv = np.where(s.alpha > 0, 1.0 / s.depth_mm, np.nan)
-        mx = ndimage.maximum_filter(np.nan_to_num(inv, nan=-np.inf), size=size, mode="reflect")
-        mn = np.where(np.isnan(inv), np.inf, inv)
-        hi = mx if hi is None else np.maximum(hi, mx)
-        lo = mn if lo is None else np.minimum(lo, mn)
-    jump = np.where(np.isfinite(lo), hi - lo, 0.0)
-    return int(np.count_nonzero(jump > edge)), float(jump.max())
+        valid = s.alpha > 0
+        inv = np.where(valid, 1.0 / s.depth_mm, np.nan)
+        invs.append(inv)
+        jump = np.zeros(scene.shape)
+        for dy, dx in _NEIGHBOURS:
+            d = np.abs(inv - _neighbour(inv, dy, dx, np.nan))
+            jump = np.fmax(jump, np.nan_to_num(d, nan=0.0))
+        jump *= k
+        worst = max(worst, float(jump.max()))
+        mask |= valid & (jump > 1.0)
+    for j, s in enumerate(scene.surfaces):
+        valid = s.alpha > 0
+        outside = np.zeros(scene.shape, bool)
+        for dy, dx in _NEIGHBOURS:
+            outside |= ~_neighbour(valid, dy, dx, True)
+        rim = valid & ((s.alpha < 1) | outside)
+        if not rim.any():
+            continue
+        for i in range(len(scene.surfaces)):
+            if i == j:
+                continue
+            step = k * np.nan_to_num(invs[j] - invs[i], nan=0.0)
+            hit = rim & (step > 0.5)
+            if hit.any():
+                worst = max(worst, float(step[hit].max()))
+                mask |= hit
+    return mask, worst
+
+
+def _occlusion_error(scene: Scene, camera: Camera, bands, p_ref: float) -> float:
+    """Estimated error of 'over' compositing at the silhouettes of nearer surfaces.
+
+    For each pair of surfaces (near over far) the exact straight-edge trace against the
+    over model (:func:`pipeline.core.simulate.edge.edge_error`, with the two surfaces' own
+    textures and their blur radii over the band's exposure, 16 time cells) gives the
+    squared error per px of silhouette; the whole-image estimate is
+    ``sqrt(sum L e / N) / contrast``. It is 0 where either side is in focus. Self-edges of
+    one surface (depth steps in a depth map) are not counted.
+    """
+    from pipeline.core.simulate import edge as edge_model
+
+    lens = camera.lens
+    rows, cols = scene.shape
+    k = 0.5 * lens.aperture_mm * p_ref / lens.pixel_pitch_mm
+    order = sorted(
+        range(len(scene.surfaces)), key=lambda i: float(np.median(scene.surfaces[i].depth_mm))
+    )
+    visible = np.zeros(scene.shape)
+    filled = np.zeros(scene.shape, bool)
+    for i in order:  # nearest first
+        s = scene.surfaces[i]
+        m = (s.alpha > 0) & ~filled
+        visible[m] = s.radiance[m].mean(axis=-1)
+        filled |= m
+    contrast = float(np.std(visible[filled])) if filled.any() else 0.0
+    if contrast <= 0:
+        return 0.0
+    total = 0.0
+    for j, near in enumerate(scene.surfaces):
+        valid = near.alpha > 0
+        outside = np.zeros(scene.shape, bool)
+        for dy, dx in _NEIGHBOURS:
+            outside |= ~_neighbour(valid, dy, dx, True)
+        rim = valid & ((near.alpha < 1) | outside)
+        for i, far in enumerate(scene.surfaces):
+            if i == j or not rim.any():
+                continue
+            hit = rim & (far.alpha > 0)
+            inv_n = 1.0 / near.depth_mm[hit]
+            inv_f = 1.0 / far.depth_mm[hit]
+            if not hit.any() or k * np.median(inv_n - inv_f) <= 0.5:
+                continue
+            d_n, d_f = float(np.median(inv_n)), float(np.median(inv_f))
+            # the straight edge through the silhouette's median column, near side left
+            rr, cc = np.nonzero(hit)
+            c = int(np.median(cc))
+            tex_n, tex_f = near.radiance.mean(axis=-1), far.radiance.mean(axis=-1)
+            if valid[:, : c + 1].sum() < valid[:, c:].sum():  # near side right: mirror
+                tex_n, tex_f, c = tex_n[:, ::-1], tex_f[:, ::-1], cols - 1 - c
+            r0 = max(0, min(int(np.median(rr)) - 32, rows - 64))
+            tex_n, tex_f = tex_n[r0:], tex_f[r0:]
+            worst = 0.0
+            for band in bands:
+                t0, t1 = float(band.profile.times_s[0]), float(band.profile.times_s[-1])
+                cells = 1 if np.ptp(band.profile.image_distances_mm) == 0 else 16
+                tb = np.linspace(t0, t1, cells + 1)
+                p = band.profile.position(0.5 * (tb[1:] + tb[:-1]))
+                d_p = 1.0 / lens.focal_length_mm - 1.0 / p
+                err = edge_model.edge_error(
+                    tex_n, tex_f, k * (d_n - d_p), k * (d_f - d_p), centre=c + 1
+                )
+                worst = max(worst, err)
+            total += worst * int(np.count_nonzero(hit))
+    return float(math.sqrt(total / (rows * cols)) / contrast)
 
 
 def plan(
@@ -440,11 +658,18 @@ def plan(
         band_specs = [(0, rows, camera.motion)]
         effects.append(Effect("rolling-shutter rows", False, "global shutter", 0.0))
 
+    a_p = lens.aperture_mm * float(p_all.max()) / lens.pixel_pitch_mm  # d b_px / d D (Eq. 2)
+    edge = EDGE_BLUR_PX / a_p
+    edge_mask, jump = _edges(scene, 0.5 * a_p)
+    n_edge = int(np.count_nonzero(edge_mask))
+    if occlusion is None:
+        occlusion = n_edge > 0
     p_ref = camera.reference_mm
+    groups = _groups(scene, present)
     bands, layer_err, mag_err, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
     for r0, r1, prof in band_specs:
-        layers, err = _layers(present, prof, cache, tolerance)
-        layer_err = max(layer_err, err)
+        cache.clear()  # a fresh cache per band: memory does not grow with the rows
+        layers, err = _layers(groups, prof, cache, tolerance)
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
                 prof, layers, lens, model, spectra, p_ref, (rows, cols), tolerance
@@ -453,6 +678,10 @@ def plan(
             steps, m_err, m_app, n = _forced_steps(prof, p_ref, magnification_steps)
         mag_err, mag_applied = max(mag_err, m_err), mag_applied or m_app
         mag_steps = max(mag_steps, n)
+        if occlusion:
+            layer_err = max(layer_err, err)  # box layers (occlusion compositing)
+        else:
+            layer_err = max(layer_err, _hat_error(groups, layers, steps, cache, (rows, cols)))
         bands.append(Band(r0, r1, prof, layers, steps))
     n_layers = max(len(b.layers) for b in bands)
     span = f"{_depth(present[-1]):.6g}-{_depth(present[0]):.6g} mm"
@@ -460,6 +689,11 @@ def plan(
         reason = f"the whole depth range ({span}) is within the tolerance of one kernel"
     else:
         reason = f"{n_layers} layers over {span}, split in inverse depth by kernel_error"
+        reason += (
+            " (box layers: occlusion compositing)"
+            if occlusion
+            else "; hat-function interpolation, error checked over the sub-steps"
+        )
     effects.append(Effect("depth layers", n_layers > 1, reason, layer_err))
     corner_px = 0.5 * math.hypot(rows - 1, cols - 1) * float(np.max(np.abs(p_all / p_ref - 1)))
     if mag_applied:
@@ -471,24 +705,24 @@ def plan(
         reason = f"image moves up to {corner_px:.3g} px at the corner: below the tolerance"
     effects.append(Effect("magnification", mag_applied, reason, mag_err))
 
-    a_p = lens.aperture_mm * float(p_all.max()) / lens.pixel_pitch_mm  # d b_px / d D (Eq. 2)
-    edge = EDGE_BLUR_PX / a_p
-    n_edge, jump = _edges(scene, edge, size // 2)
-    if occlusion is None:
-        occlusion = n_edge > 0
     if n_edge == 0:
         reason = (
-            f"no depth edges (no depth step > {edge * 1e3:.3g} dpt = {EDGE_BLUR_PX:g} px "
-            "of blur within a blur radius): plain sum of layers"
+            f"no depth edges (the blur radius changes by at most {jump:.3g} px per px; "
+            "every ray meets the scene once): plain sum of layers"
         )
         est = 0.0
     else:
         reason = (
-            f"{n_edge} px near depth edges (steps up to {jump * a_p:.3g} px of blur): "
+            f"{n_edge} px on depth edges (the blur radius jumps up to {jump:.3g} px): "
             "back-to-front 'over' compositing"
         )
         est = float(max(np.max(s.radiance) for s in scene.surfaces))
-    effects.append(Effect("occlusion", occlusion, reason, 0.0 if occlusion else est))
+        if occlusion:
+            over = _occlusion_error(scene, camera, bands, p_ref)
+            if over > 0:
+                reason += ": partial occlusion at the silhouettes is not modelled"
+            est = over
+    effects.append(Effect("occlusion", occlusion, reason, est))
 
     if camera.exposure is None:
         effects.append(Effect("noise", False, "no exposure level given", 0.0))
@@ -514,7 +748,6 @@ def plan(
         noise=camera.exposure,
         effects=tuple(effects),
     )
-
 
 
 def _forced_steps(profile: Profile, p_ref: float, n: int):

@@ -22,18 +22,24 @@ The image-formation model
 Depth is split into layers in inverse depth ``D = 1/u`` (1/mm; the blur diameter of Eq. 2
 is piecewise linear in D): a layer ends where its kernel (the IPSF of Eq. 5 at its
 representative depth) would differ from a member depth's kernel by more than the tolerance.
-Each layer's premultiplied radiance ``L alpha`` and ``alpha`` are blurred by the layer's
-kernel (FFT, reflect padding) into ``C_i`` and ``A_i``. Occlusion: a layer is covered by
-every layer nearer than it by more than ``edge`` in D (a *depth edge*: the blur diameter
-changes by more than :data:`EDGE_BLUR_PX` px), composited "over" back to front::
+Layers never span two surfaces whose depth ranges do not overlap. Without occlusion each
+pixel is split between the two nearest representatives with hat-function weights linear
+in D (the kernel is continuous across layer boundaries: no seams), and the image is the
+plain sum of the layers' blurred premultiplied radiance ``L alpha``.
+
+Occlusion only happens at *depth edges*: where the blur radius changes by more than 1 px
+per px (``k max|D - D'| > 1`` over the 8 neighbours, ``k = (a/2) p / pitch``), or at the
+silhouette of a nearer surface over a farther one; elsewhere every ray through the
+aperture meets the scene once and the plain sum is exact. With edges, box layers are
+composited "over" back to front, a layer covered by every layer nearer by more than
+``edge`` in D::
 
     out = sum_i C_i T_i,  T_i = prod_{j: D_j > D_i + edge} (1 - A_j)
     out *= max(1, min(1, sum_i A_i) / sum_i A_i T_i)    (coverage renormalisation)
 
-The renormalisation only brightens, where the composited coverage falls below the scene's
-own coverage (self-overlap of a steep continuous surface); at a true edge of opaque
-surfaces ``sum_i A_i T_i = 1`` already, and without occluders it is 1. Without depth
-edges the model is the plain sum of layers.
+The over model misses partial occlusion (a pixel's aperture split by the edge when both
+sides are out of focus); the plan estimates that error with an exact straight-edge trace
+(:mod:`pipeline.core.simulate.edge`).
 
 Magnification: the image scales by ``p(t) / p_ref`` about the centre (Sec. 3, footnote 1);
 when it matters the exposure is cut into sub-steps, each rendered with its own IPSF and
@@ -42,15 +48,18 @@ scaled (cubic spline). Noise: Poisson shot noise plus Gaussian read noise in ele
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy import ndimage, signal
 
 from pipeline.core.lens import Lens
-from pipeline.core.scene import Camera, Exposure, Scene
+from pipeline.core.scene import Camera, Exposure, Scene, Surface
 from pipeline.core.simulate.planner import Plan, _KernelCache, plan
 from pipeline.errors import InputError
+
+_SPLINE_MARGIN = 12  # rows: the cubic spline's prefilter decays 0.27x per px (1e-7 at 12)
 
 
 # ----------------------------------------------------------------------------- render
@@ -112,38 +121,62 @@ def render(
     out = np.zeros((rows, cols, channels), dtype=scene.dtype)
     cache = _KernelCache(p.lens, p.model, None)  # type: ignore[arg-type]
     total, done = sum(len(band.steps) for band in p.bands), 0
+    centre = np.array([(rows - 1) / 2, (cols - 1) / 2])
     for band in p.bands:
-        image = np.zeros_like(out)
+        cache.clear()
+        r0, r1 = band.row_start, band.row_stop
+        q0, q1, part = 0, rows, scene
+        if len(p.bands) > 1:  # only the band's rows plus what reaches them
+            half = max(
+                cache.kernel(layer.inv_rep, step.profile, step.scale).shape[0] // 2
+                for layer in band.layers
+                for step in band.steps
+            )
+            reach = max(abs(r0 - centre[0]), abs(r1 - 1 - centre[0]))
+            moved = max(abs(1 - 1 / step.scale) for step in band.steps) * reach
+            margin = half + int(np.ceil(moved)) + _SPLINE_MARGIN
+            q0, q1 = max(0, r0 - margin), min(rows, r1 + margin)
+            part = _rows(scene, q0, q1)
+        image = np.zeros((q1 - q0, cols, channels), dtype=out.dtype)
         for step in band.steps:
-            sub = _layered(scene, band.layers, step.profile, cache, p.occlusion, p.edge_inv_depth)
+            sub = _layered(
+                part, band.layers, step.profile, cache, p.occlusion, p.edge_inv_depth, step.scale
+            )
             if step.scale != 1.0:
-                sub = _scale(sub, step.scale)
+                sub = _scale(sub, step.scale, centre - np.array([q0, 0]))
             image += np.asarray(step.weight, dtype=out.dtype) * sub
             done += 1
             if progress is not None:
                 progress(done, total)
-        out[band.row_start : band.row_stop] = image[band.row_start : band.row_stop]
+        out[r0:r1] = image[r0 - q0 : r1 - q0]
     if p.noise is not None:
         out = _add_noise(out, p.noise, seed)
     return out if scene.channels_axis else out[:, :, 0]
 
 
-def _layered(scene, layers, profile, cache, occlusion, edge) -> np.ndarray:
-    """Blur each depth layer by its kernel and composite (module notes)."""
+def _layered(scene, layers, profile, cache, occlusion, edge, scale=1.0) -> np.ndarray:
+    """Blur each depth layer by its kernel and composite (module notes).
+
+    ``scale``: the step is scaled by it afterwards, so its kernels are in grid pixels
+    (Eq. 2's detector blur divided by ``scale``).
+    """
     dtype = scene.dtype
-    kernels = [cache.kernel(layer.inv_rep, profile).astype(dtype) for layer in layers]
+    kernels = [cache.kernel(layer.inv_rep, profile, scale).astype(dtype) for layer in layers]
     pad = max(k.shape[0] // 2 for k in kernels)
     ends = np.array([layer.inv_hi for layer in layers])
     ordered = sorted(scene.surfaces, key=lambda s: -float(np.median(s.depth_mm)))  # far first
     padded = []
     for s in ordered:
-        idx = np.searchsorted(ends, 1.0 / s.depth_mm, side="left").clip(0, len(layers) - 1)
+        inv = 1.0 / s.depth_mm
+        idx = np.searchsorted(ends, inv, side="left").clip(0, len(layers) - 1)
         widths = ((pad, pad), (pad, pad))
+        hat = None if occlusion else _hat(inv, layers, idx)
         padded.append(
             (
                 np.pad(s.radiance * s.alpha[:, :, None], (*widths, (0, 0)), mode="reflect"),
                 np.pad(s.alpha, widths, mode="reflect"),
                 np.pad(idx, widths, mode="reflect"),
+                None if hat is None else tuple(np.pad(h, widths, mode="reflect") for h in hat),
             )
         )
     shape = padded[0][1].shape
@@ -155,7 +188,14 @@ def _layered(scene, layers, profile, cache, occlusion, edge) -> np.ndarray:
         coverage = np.zeros(shape, dtype=dtype)
         pending: list = []
     for i in range(len(layers) - 1, -1, -1):  # near to far
-        masks = [(idx == i) & (a > 0) for _, a, idx in padded]
+        if occlusion:
+            weights = [((idx == i) & (a > 0)).astype(dtype) for _, a, idx, _ in padded]
+        else:  # hat functions: each pixel split between its two nearest representatives
+            weights = [
+                np.where(a > 0, np.where(lo == i, 1 - th, 0) + np.where(lo + 1 == i, th, 0), 0)
+                for _, a, _, (lo, th) in padded
+            ]
+        masks = [w > 0 for w in weights]
         union = np.logical_or.reduce(masks)
         if not union.any():
             continue
@@ -165,10 +205,10 @@ def _layered(scene, layers, profile, cache, occlusion, edge) -> np.ndarray:
         c0, c1 = max(cc[0] - h, 0), min(cc[-1] + h + 1, shape[1])
         color = np.zeros((r1 - r0, c1 - c0, channels), dtype=dtype)
         alpha = np.zeros((r1 - r0, c1 - c0), dtype=dtype)
-        for (c, a, _), m in zip(padded, masks):  # far to near within the layer: "over"
-            m = m[r0:r1, c0:c1]
-            a_here = np.where(m, a[r0:r1, c0:c1], 0)
-            color = np.where(m[:, :, None], c[r0:r1, c0:c1], 0) + (1 - a_here)[:, :, None] * color
+        for (c, a, _, _), w in zip(padded, weights):  # far to near within the layer: "over"
+            w = w[r0:r1, c0:c1].astype(dtype)
+            a_here = w * a[r0:r1, c0:c1]
+            color = w[:, :, None] * c[r0:r1, c0:c1] + (1 - a_here)[:, :, None] * color
             alpha = a_here + (1 - a_here) * alpha
         block = np.concatenate([color, alpha[:, :, None]], axis=2) if occlusion else color
         blurred = signal.oaconvolve(block, kernels[i][:, :, None], mode="same", axes=(0, 1))
@@ -193,10 +233,42 @@ def _layered(scene, layers, profile, cache, occlusion, edge) -> np.ndarray:
     return out[pad : shape[0] - pad, pad : shape[1] - pad]
 
 
-def _scale(image: np.ndarray, scale: float) -> np.ndarray:
-    """Scale about the image centre by ``scale`` (cubic spline, mirrored borders)."""
+def _hat(inv: np.ndarray, layers, idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Hat-function split: ``(lo, theta)``, weight ``1 - theta`` to layer ``lo`` and
+    ``theta`` to ``lo + 1``, linear in inverse depth between their representatives.
+
+    The kernel is then piecewise linear in D and continuous across layer boundaries (box
+    layers leave seams proportional to the mean radiance). Only within a group (layers of
+    different surfaces' depth ranges never mix); elsewhere the pixel keeps its box layer.
+    """
+    n = len(layers)
+    if n == 1:
+        return np.zeros(inv.shape, int), np.zeros(inv.shape)
+    reps = np.array([layer.inv_rep for layer in layers])
+    group = np.array([layer.group for layer in layers])
+    lo = (np.searchsorted(reps, inv, side="right") - 1).clip(0, n - 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        theta = np.clip((inv - reps[lo]) / (reps[lo + 1] - reps[lo]), 0.0, 1.0)
+    same = group[lo] == group[lo + 1]
+    box_theta = (idx == lo + 1).astype(float)
+    theta = np.where(same, np.nan_to_num(theta), box_theta)
+    return lo, theta
+
+
+def _rows(scene: Scene, q0: int, q1: int) -> Scene:
+    """The scene's rows ``[q0, q1)``."""
+    surfaces = tuple(
+        Surface(s.radiance[q0:q1], s.alpha[q0:q1], s.depth_mm[q0:q1]) for s in scene.surfaces
+    )
+    return dataclasses.replace(scene, surfaces=surfaces)
+
+
+def _scale(image: np.ndarray, scale: float, centre=None) -> np.ndarray:
+    """Scale about ``centre`` (default the image centre) by ``scale`` (cubic spline,
+    mirrored borders)."""
     rows, cols = image.shape[:2]
-    centre = np.array([(rows - 1) / 2, (cols - 1) / 2])
+    if centre is None:
+        centre = np.array([(rows - 1) / 2, (cols - 1) / 2])
     out = np.empty_like(image)
     for c in range(image.shape[2]):  # output pixel x samples the input at c + (x - c) / scale
         ndimage.affine_transform(
