@@ -429,6 +429,7 @@ class EmulatedCamera:
             image = self.renderer(positions[-1])
         else:
             image = sum(w * self.renderer(pos) for w, pos in zip(dwell / dwell.sum(), positions))
+            image = np.clip(image, 0.0, 1.0)  # a mean of [0, 1] frames, up to rounding
         if self.p.vendor == "nikon":
             handle = NIKON_SDRAM_HANDLE
         else:
