@@ -214,3 +214,17 @@ def row_weights(
     else:
         cells = np.stack([_interval(knots, x - half, x + half) for x in p])
     return _spread(cells, inverse, counts)
+
+
+def frame_noise_gain(weights) -> float:
+    """How much quieter the weighted average is than one frame: ``sum w / sqrt(sum w^2)``.
+
+    The frames' noise is independent, so the average's noise std is one frame's times
+    ``sqrt(sum w^2) / sum w``. A deconvolution that amplifies white noise by at most this
+    factor leaves the result about as noisy as one frame (issue 13's noise target).
+    """
+    w = np.asarray(weights, dtype=np.float64).ravel()
+    energy = float(np.sum(w**2))
+    if not np.all(np.isfinite(w)) or np.any(w < 0) or energy <= 0:
+        raise InputError("weights must be finite, non-negative and not all zero")
+    return float(np.sum(w) / np.sqrt(energy))

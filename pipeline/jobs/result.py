@@ -52,7 +52,14 @@ RESCALE_ABOVE = 1e4  # linear light has white at 1: far larger values are rescal
 
 
 def restore_image(
-    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None, source=None
+    image,
+    kernel,
+    options: StackOptions,
+    *,
+    clipped=None,
+    kernel_samples=None,
+    source=None,
+    noise_gain=None,
 ) -> np.ndarray:
     """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
 
@@ -60,10 +67,13 @@ def restore_image(
     residual depth dependence of the IPSF (see :func:`wiener_options`). Images whose
     values exceed ``RESCALE_ABOVE`` (float frames in other units) are deconvolved
     divided by their peak and scaled back, so float32 sums cannot overflow.
-    ``source`` (the frames, for messages) names the input in errors.
+    ``source`` (the frames, for messages) names the input in errors. ``noise_gain``
+    (Wiener only) caps the filter's white-noise gain (see ``wiener.lam_for_noise_gain``).
     """
     clipped = clipped_pixels(image) if clipped is None else clipped
     extra = wiener_options(kernel, kernel_samples) if options.method == "wiener" else {}
+    if noise_gain is not None and options.method == "wiener":
+        extra["noise_gain"] = noise_gain
     finite = np.isfinite(image)
     if not np.all(finite):
         raise InputError(

@@ -24,10 +24,10 @@ import cv2
 import dask
 import numpy as np
 
-from pipeline.core import align, defocus
+from pipeline.core import align, defocus, guard
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
-from pipeline.core.weights import constant_speed_weights
+from pipeline.core.weights import constant_speed_weights, frame_noise_gain
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
@@ -218,10 +218,12 @@ def accumulate(
     options: StackOptions,
     *,
     progress: Progress = _no_progress,
+    frame_range: list | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``sum_i w_i warp(frame_i)`` streamed through dask, and the pixels clipped in any frame.
 
-    ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
+    ``weights`` is (frames,) or, for per-row DOFs, (rows, frames). A list passed as
+    ``frame_range`` receives the frames' per-pixel minimum and maximum (for the guard).
     """
     t0 = time.perf_counter()
     per_frame = weights if weights.ndim == 1 else weights.T  # (frames,) or (frames, rows)
@@ -230,11 +232,14 @@ def accumulate(
         [None if options.align == "none" else a.homography for a in aligned.alignments],
         per_frame,
         aligned.shape,
+        frame_range=frame_range is not None,
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
     with _TaskProgress("_warped_leaf", lambda done: progress("accumulate", done, used)):
-        ((average, clipped, read_s),) = dask.compute(graph)
+        ((average, clipped, read_s, *lo_hi),) = dask.compute(graph)
+    if frame_range is not None:
+        frame_range.extend(lo_hi)
     progress("accumulate", used, used)
     aligned.timings["accumulate"] = time.perf_counter() - t0
     aligned.timings["read"] = read_s  # full-resolution decoding, summed over worker threads
@@ -371,7 +376,10 @@ def process_stack(
     )
     timings["kernel"] = time.perf_counter() - t0
 
-    average, clipped = accumulate(aligned, weights, options, progress=progress)
+    frame_range: list = []
+    average, clipped = accumulate(
+        aligned, weights, options, progress=progress, frame_range=frame_range
+    )
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
@@ -382,7 +390,9 @@ def process_stack(
         clipped=clipped,
         kernel_samples=kernel_samples,
         source=_describe_frames(stack),
+        noise_gain=frame_noise_gain(weights),
     )
+    result = guard.clip_to_frames(result, *frame_range)  # issue 13: no rims, moats, ringing
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     sidecar = stack_sidecar(aligned, weights, options.method, options)

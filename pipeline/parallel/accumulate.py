@@ -19,10 +19,12 @@ SATURATION = 0.999  # normalised level at and above which a pixel is treated as 
 
 
 # ----------------------------------------------------------------------------- frame leaves
-def _warped_leaf(path: str, homography, weight, shape):
+def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False):
     """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode time.
 
-    ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
+    ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7). With
+    ``frame_range`` the unweighted frame is also returned twice, as the running
+    per-pixel minimum and maximum (see :func:`pipeline.core.guard`).
     """
     t0 = time.perf_counter()
     frame = read_frame(path)
@@ -30,30 +32,43 @@ def _warped_leaf(path: str, homography, weight, shape):
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
+    extra = (frame.copy(), frame.copy()) if frame_range else ()
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
         frame *= np.asarray(weight, np.float32).reshape((-1,) + (1,) * (frame.ndim - 1))
-    return frame, clipped, read_s
+    return (frame, clipped, read_s, *extra)
 
 
 def _merge(a, b):
-    """Sum two partial weighted sums (in place), OR their clipped masks, add decode times."""
+    """Sum two partial weighted sums (in place), OR their clipped masks, add decode times;
+    with frame ranges, the running minimum and maximum too."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
     np.logical_or(a[1], b[1], out=a[1])
+    if len(a) == 5:
+        np.minimum(a[3], b[3], out=a[3])
+        np.maximum(a[4], b[4], out=a[4])
+        return a[0], a[1], a[2] + b[2], a[3], a[4]
     return a[0], a[1], a[2] + b[2]
 
 
-def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
+def weighted_sum_graph(
+    files: Sequence[Path], homographies, weights, shape, *, frame_range: bool = False
+):
     """A dask graph for ``sum_i w_i warp(frame_i)`` as a binary tree of merges.
 
     ``weights[i]`` is frame i's weight, a number or one per row. Frames whose
     weights are all zero are not read. Returns a Delayed yielding
-    ``(sum, clipped_any_frame, decode_seconds)``.
+    ``(sum, clipped_any_frame, decode_seconds)``, and with ``frame_range`` also the
+    per-pixel minimum and maximum over the frames read.
     """
     level = [
         dask.delayed(_warped_leaf, pure=True)(
-            str(path), h, float(w) if np.ndim(w) == 0 else np.asarray(w), tuple(shape)
+            str(path),
+            h,
+            float(w) if np.ndim(w) == 0 else np.asarray(w),
+            tuple(shape),
+            frame_range,
         )
         for path, h, w in zip(files, homographies, weights)
         if np.max(w) > 0
