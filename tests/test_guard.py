@@ -107,9 +107,42 @@ def test_leaves_and_merge_stream_the_frames_min_and_max(tmp_path):
         tifffile.imwrite(paths[-1], f, photometric="rgb")
     leaves = [_warped_leaf(str(p), None, 0.5, (12, 10, 3), True) for p in paths]
     total = _merge(_merge(leaves[0], leaves[1]), leaves[2])
-    assert len(total) == 5
+    assert len(total) == 7
     np.testing.assert_allclose(total[0], 0.5 * sum(frames), rtol=1e-5)
     np.testing.assert_allclose(total[3], np.min(frames, axis=0), rtol=1e-5)
     np.testing.assert_allclose(total[4], np.max(frames, axis=0), rtol=1e-5)
     plain = _warped_leaf(str(paths[0]), None, 1.0, (12, 10, 3))
     assert len(_merge(plain, _warped_leaf(str(paths[1]), None, 1.0, (12, 10, 3)))) == 3
+
+
+def test_sharpest_fallback_restores_only_where_the_frame_is_clearly_sharper():
+    rng = np.random.default_rng(4)
+    texture = 0.2 + 0.6 * (rng.random((96, 160)) > 0.5)  # binary texture, fine detail
+    soft = ndimage.gaussian_filter(texture, 3.0)
+    # left half: the result lost the texture (the stack's end); right half: it kept it
+    result = np.where(np.arange(160) < 80, soft, texture)
+    sharpest = texture + rng.normal(0, 0.002, texture.shape)
+    out = guard.sharpest_fallback(result[..., None], sharpest[..., None])[..., 0]
+    assert np.abs(out - texture)[:, 5:60].mean() < 0.2 * np.abs(soft - texture)[:, 5:60].mean()
+    np.testing.assert_allclose(out[:, 100:], result[:, 100:], atol=0.01)  # no change where equal
+    # a frame that is only noisier (no more detail) is not taken
+    flat = np.full((64, 64), 0.4)
+    noisy = flat + rng.normal(0, 0.001, flat.shape)
+    np.testing.assert_allclose(guard.sharpest_fallback(flat, noisy), flat, atol=2e-4)
+
+
+def test_leaves_keep_the_sharpest_frame_per_pixel(tmp_path):
+    import tifffile
+
+    rng = np.random.default_rng(5)
+    detail = (0.2 + 0.6 * (rng.random((40, 60)) > 0.5)).astype(np.float32)
+    soft = ndimage.gaussian_filter(detail, 2.0).astype(np.float32)
+    near = np.where(np.arange(60) < 30, detail, soft)  # left in focus
+    far = np.where(np.arange(60) < 30, soft, detail)  # right in focus
+    paths = [tmp_path / "near.tif", tmp_path / "far.tif"]
+    for p, f in zip(paths, (near, far)):
+        tifffile.imwrite(p, np.repeat(f[..., None], 3, axis=2), photometric="rgb")
+    a, b = (_warped_leaf(str(p), None, 0.5, (40, 60, 3), True) for p in paths)
+    sharpest = _merge(a, b)[5][..., 0]
+    np.testing.assert_allclose(sharpest[:, 4:24], detail[:, 4:24], atol=1e-6)
+    np.testing.assert_allclose(sharpest[:, 36:56], detail[:, 36:56], atol=1e-6)

@@ -20,6 +20,10 @@ from pipeline.jobs.sweep import (
 )
 from pipeline.parallel.scheduler import scheduler_context
 
+# issue 13: "sparse" is 100-160x slower than Wiener for +0.06-0.09 dB; not offered on the
+# command line (pipeline.core.deconvolve still has it, for the accuracy benchmark and the API)
+CLI_METHODS = tuple(m for m in METHODS if m != "sparse")
+
 
 def register(subparsers) -> None:
     parser = subparsers.add_parser(
@@ -44,7 +48,7 @@ def register(subparsers) -> None:
     parser.add_argument("--near", type=float, required=True, help="near end of the sweep, mm")
     parser.add_argument("--far", type=float, default=math.inf, help="far end, mm (default inf)")
     parser.add_argument("--exposure", type=float, default=1.0, help="exposure time, s")
-    parser.add_argument("--method", choices=METHODS, default="wiener", help="deconvolution")
+    parser.add_argument("--method", choices=CLI_METHODS, default="wiener", help="deconvolution")
     parser.add_argument("--tile-px", type=int, default=1024, help="deconvolution tile side")
     add_compute_options(parser)
     parser.set_defaults(func=run)

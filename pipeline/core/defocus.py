@@ -26,6 +26,16 @@ from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
 
+# Real defocus is a pillbox core with a wide, soft tail; the fit matches the core, and a
+# kernel built from it leaves the tail (haze, soft stack ends) unrestored. Issue 13
+# measured x1.5-2 on four real stacks (region benchmark, tests/benchmarks/results/real_regions).
+RESTORATION_SPAN_FACTOR = 1.5
+
+
+def restoration_span(fitted_span_px: float) -> float:
+    """The blur span to build the stack's kernel from, given :func:`estimate_blur_span`'s fit."""
+    return float(fitted_span_px) * RESTORATION_SPAN_FACTOR
+
 def _focus_measure(grey: np.ndarray) -> np.ndarray:
     """Local energy of the Laplacian (a standard focus measure), smoothed over ~9 px."""
     lap = cv2.Laplacian(grey, cv2.CV_32F, ksize=3)

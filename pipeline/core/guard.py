@@ -43,3 +43,60 @@ def clip_to_frames(result, lo, hi, radius_px: int = GUARD_RADIUS_PX) -> np.ndarr
         raise InputError(f"frame range {np.shape(lo)} does not match the image {result.shape}")
     lo, hi = widen_range(lo, hi, radius_px)
     return np.clip(result, lo.astype(result.dtype), hi.astype(result.dtype))
+
+
+# ----------------------------------------------------------------------------- stack ends
+FOCUS_SIGMA_PX = 8.0  # smoothing of the focus measure: coherent picks, not per-pixel noise
+CONTRAST_WINDOW_PX = 15  # local contrast window of the fallback
+FALLBACK_FLOOR = 2.0 / 255.0  # display levels the sharpest frame must win by
+FALLBACK_SMOOTH_PX = 8.0  # smoothing of the blend weight
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image, np.float32)
+    return image.mean(axis=2) if image.ndim == 3 else image
+
+
+def focus_measure(frame) -> np.ndarray:
+    """Per-pixel sharpness of one frame: Laplacian energy of its grey, smoothed (rows, cols)."""
+    grey = _grey(frame)
+    lap = cv2.Laplacian(grey, cv2.CV_32F, ksize=3)
+    return cv2.GaussianBlur(lap * lap, (0, 0), FOCUS_SIGMA_PX)
+
+
+def _display(grey: np.ndarray) -> np.ndarray:
+    """A display-like (gamma 1/2.2) version of linear grey, so the floor is in levels."""
+    return np.power(np.clip(grey, 0.0, None), 1.0 / 2.2)
+
+
+def local_contrast(grey: np.ndarray, sigma_px: float = 1.0, window_px: int = 15) -> np.ndarray:
+    """RMS of a band (grey minus its Gaussian blur of ``sigma_px``) over square windows."""
+    g = _display(grey)
+    band = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
+    return np.sqrt(np.maximum(cv2.blur(band * band, (window_px, window_px)), 0.0))
+
+
+def sharpest_fallback(result, sharpest) -> np.ndarray:
+    """Blend towards the per-pixel sharpest frame where it shows clearly more fine
+    contrast than ``result`` (issue 13, item 4: Sec. 4.1's end effect).
+
+    Content in focus only near an end of the stack gets the smallest weights and the
+    least restorable blur; there the sharpest frame is better than any deconvolution.
+    ``alpha`` rises from 0 to 1 as the frame's local contrast exceeds the result's by
+    one to two ``FALLBACK_FLOOR`` (display levels), then is smoothed so no seams show.
+    """
+    result = np.asarray(result)
+    sharpest = np.asarray(sharpest, result.dtype)
+    if result.shape != sharpest.shape:
+        raise InputError(f"sharpest frame {sharpest.shape} does not match the image {result.shape}")
+    a, b = _grey(sharpest), _grey(result)
+    gain = np.maximum(  # fine detail, and coarser contrast (bars, lettering)
+        local_contrast(a) - local_contrast(b),
+        local_contrast(a, 3.0, 2 * CONTRAST_WINDOW_PX + 1)
+        - local_contrast(b, 3.0, 2 * CONTRAST_WINDOW_PX + 1),
+    )
+    alpha = np.clip((gain - FALLBACK_FLOOR) / FALLBACK_FLOOR, 0.0, 1.0)
+    alpha = cv2.GaussianBlur(alpha.astype(np.float32), (0, 0), FALLBACK_SMOOTH_PX)
+    if result.ndim == 3:
+        alpha = alpha[..., np.newaxis]
+    return (result + alpha * (sharpest - result)).astype(result.dtype, copy=False)

@@ -223,7 +223,8 @@ def accumulate(
     """``sum_i w_i warp(frame_i)`` streamed through dask, and the pixels clipped in any frame.
 
     ``weights`` is (frames,) or, for per-row DOFs, (rows, frames). A list passed as
-    ``frame_range`` receives the frames' per-pixel minimum and maximum (for the guard).
+    ``frame_range`` receives the frames' per-pixel minimum, maximum, sharpest frame and
+    its focus measure (for :mod:`pipeline.core.guard`).
     """
     t0 = time.perf_counter()
     per_frame = weights if weights.ndim == 1 else weights.T  # (frames,) or (frames, rows)
@@ -371,6 +372,7 @@ def process_stack(
                 "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
             ) from err
         log.info("estimated blur span: %.1f px across the stack", blur_span)
+        blur_span = defocus.restoration_span(blur_span)  # issue 13: the defocus tail
     kernel, kernel_samples, kernel_summary = stack_kernel(
         positions, weights, lens=lens, absolute=aligned.absolute, blur_span_px=blur_span
     )
@@ -392,7 +394,8 @@ def process_stack(
         source=_describe_frames(stack),
         noise_gain=frame_noise_gain(weights),
     )
-    result = guard.clip_to_frames(result, *frame_range)  # issue 13: no rims, moats, ringing
+    lo, hi, sharpest, _ = frame_range  # issue 13: the stack's ends, then no rims or moats
+    result = guard.clip_to_frames(guard.sharpest_fallback(result, sharpest), lo, hi)
     timings["deconvolve"] = time.perf_counter() - t0
     progress("deconvolve", 1, 1)
     sidecar = stack_sidecar(aligned, weights, options.method, options)

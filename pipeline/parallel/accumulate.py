@@ -12,7 +12,7 @@ from pathlib import Path
 import dask
 import numpy as np
 
-from pipeline.core import align
+from pipeline.core import align, guard
 from pipeline.io.read import read_frame
 
 SATURATION = 0.999  # normalised level at and above which a pixel is treated as clipped
@@ -23,8 +23,9 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
     """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode time.
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7). With
-    ``frame_range`` the unweighted frame is also returned twice, as the running
-    per-pixel minimum and maximum (see :func:`pipeline.core.guard`).
+    ``frame_range`` the unweighted frame is also returned three times, as the running
+    per-pixel minimum, maximum and sharpest frame, with its focus measure
+    (see :mod:`pipeline.core.guard`).
     """
     t0 = time.perf_counter()
     frame = read_frame(path)
@@ -32,7 +33,11 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
-    extra = (frame.copy(), frame.copy()) if frame_range else ()
+    extra = (
+        (frame.copy(), frame.copy(), frame.copy(), guard.focus_measure(frame))
+        if frame_range
+        else ()
+    )
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
@@ -45,10 +50,13 @@ def _merge(a, b):
     with frame ranges, the running minimum and maximum too."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    if len(a) == 5:
+    if len(a) > 3:
         np.minimum(a[3], b[3], out=a[3])
         np.maximum(a[4], b[4], out=a[4])
-        return a[0], a[1], a[2] + b[2], a[3], a[4]
+        sharper = b[6] > a[6]
+        a[5][sharper] = b[5][sharper]
+        np.maximum(a[6], b[6], out=a[6])
+        return a[0], a[1], a[2] + b[2], a[3], a[4], a[5], a[6]
     return a[0], a[1], a[2] + b[2]
 
 
@@ -60,7 +68,7 @@ def weighted_sum_graph(
     ``weights[i]`` is frame i's weight, a number or one per row. Frames whose
     weights are all zero are not read. Returns a Delayed yielding
     ``(sum, clipped_any_frame, decode_seconds)``, and with ``frame_range`` also the
-    per-pixel minimum and maximum over the frames read.
+    per-pixel minimum, maximum, sharpest frame and its focus measure over the frames read.
     """
     level = [
         dask.delayed(_warped_leaf, pure=True)(
