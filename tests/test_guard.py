@@ -12,7 +12,7 @@ from pipeline.core.deconvolve.dispatch import plan
 from pipeline.core.deconvolve.wiener import lam_for_noise_gain, white_noise_gain
 from pipeline.core.weights import frame_noise_gain
 from pipeline.errors import InputError
-from pipeline.parallel.accumulate import _merge, _warped_leaf
+from pipeline.parallel.accumulate import _merge, _warped_leaf, frame_range_of
 
 
 def _asymmetric_kernel(size: int = 41) -> np.ndarray:
@@ -111,6 +111,9 @@ def test_leaves_and_merge_stream_the_frames_min_and_max(tmp_path):
     np.testing.assert_allclose(total[0], 0.5 * sum(frames), rtol=1e-5)
     np.testing.assert_allclose(total[3], np.min(frames, axis=0), rtol=1e-5)
     np.testing.assert_allclose(total[4], np.max(frames, axis=0), rtol=1e-5)
+    lo, _, sharpest, _ = frame_range_of(_warped_leaf(str(paths[0]), None, 0.3, (12, 10, 3), True))
+    np.testing.assert_allclose(lo, frames[0], rtol=1e-6)  # one frame: its own range
+    np.testing.assert_allclose(sharpest, frames[0], rtol=1e-6)
     plain = _warped_leaf(str(paths[0]), None, 1.0, (12, 10, 3))
     assert len(_merge(plain, _warped_leaf(str(paths[1]), None, 1.0, (12, 10, 3)))) == 3
 
@@ -146,3 +149,23 @@ def test_leaves_keep_the_sharpest_frame_per_pixel(tmp_path):
     sharpest = _merge(a, b)[5][..., 0]
     np.testing.assert_allclose(sharpest[:, 4:24], detail[:, 4:24], atol=1e-6)
     np.testing.assert_allclose(sharpest[:, 36:56], detail[:, 36:56], atol=1e-6)
+
+
+@pytest.mark.parametrize("command", ["stack", "sweep"])
+def test_the_cli_no_longer_offers_the_sparse_method(command, capsys):
+    from pipeline.cli import main
+
+    args = [command, "x.tif", "-o", "out.tif", "--method", "sparse"]
+    if command == "sweep":
+        args += ["--near", "500"]
+    with pytest.raises(SystemExit) as stop:
+        main(args)
+    assert stop.value.code == 2
+    assert "invalid choice: 'sparse'" in capsys.readouterr().err
+
+
+def test_restoration_span_widens_the_fitted_core():
+    from pipeline.core import defocus
+
+    assert defocus.restoration_span(40.0) == pytest.approx(40.0 * defocus.RESTORATION_SPAN_FACTOR)
+    assert 1.0 < defocus.RESTORATION_SPAN_FACTOR <= 2.0

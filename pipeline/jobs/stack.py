@@ -36,7 +36,7 @@ from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import check_not_input, check_output, restore_image, write_result
 from pipeline.jobs.sweep import process_sweep_stack
-from pipeline.parallel.accumulate import weighted_sum_graph
+from pipeline.parallel.accumulate import frame_range_of, weighted_sum_graph
 from pipeline.parallel.scheduler import _TaskProgress
 
 log = logging.getLogger(__name__)
@@ -238,9 +238,9 @@ def accumulate(
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
     with _TaskProgress("_warped_leaf", lambda done: progress("accumulate", done, used)):
-        ((average, clipped, read_s, *lo_hi),) = dask.compute(graph)
+        ((average, clipped, read_s, *ranges),) = dask.compute(graph)
     if frame_range is not None:
-        frame_range.extend(lo_hi)
+        frame_range.extend(frame_range_of((average, clipped, read_s, *ranges)))
     progress("accumulate", used, used)
     aligned.timings["accumulate"] = time.perf_counter() - t0
     aligned.timings["read"] = read_s  # full-resolution decoding, summed over worker threads

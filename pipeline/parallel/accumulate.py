@@ -23,9 +23,10 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
     """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode time.
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7). With
-    ``frame_range`` the unweighted frame is also returned three times, as the running
-    per-pixel minimum, maximum and sharpest frame, with its focus measure
-    (see :mod:`pipeline.core.guard`).
+    ``frame_range`` (one number as ``weight``) also the weight and the frame's focus
+    measure: :func:`_merge` recovers the unweighted frame as ``sum / weight`` for the
+    running per-pixel minimum, maximum and sharpest frame (see :mod:`pipeline.core.guard`),
+    so a leaf holds no extra copy of its frame.
     """
     t0 = time.perf_counter()
     frame = read_frame(path)
@@ -33,11 +34,11 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
-    extra = (
-        (frame.copy(), frame.copy(), frame.copy(), guard.focus_measure(frame))
-        if frame_range
-        else ()
-    )
+    extra = ()
+    if frame_range:
+        if np.ndim(weight) != 0 or not weight > 0:
+            raise ValueError("frame ranges need one positive weight per frame")
+        extra = (float(weight), None, None, guard.focus_measure(frame))
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
@@ -45,19 +46,36 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
     return (frame, clipped, read_s, *extra)
 
 
+def _frames_of(node):
+    """``(min, max, sharpest)`` of a node: a leaf's own frame (``sum / weight``) or merged."""
+    if node[4] is None:
+        frame = node[0] / np.float32(node[3])
+        return frame, frame, frame
+    return node[3], node[4], node[5]
+
+
 def _merge(a, b):
     """Sum two partial weighted sums (in place), OR their clipped masks, add decode times;
-    with frame ranges, the running minimum and maximum too."""
+    with frame ranges, the running minimum, maximum and sharpest frame too."""
+    ranges = ()
+    if len(a) > 3:  # before the in-place sum: a leaf's frame is its sum / weight
+        (lo_a, hi_a, sh_a), (lo_b, hi_b, sh_b) = _frames_of(a), _frames_of(b)
+        sharper = b[6] > a[6]
+        if sh_a.ndim == 3:
+            sharper = sharper[..., np.newaxis]
+        sharpest = np.where(sharper, sh_b, sh_a)
+        hi = np.maximum(hi_a, hi_b, out=hi_a if a[4] is not None else None)
+        lo = np.minimum(lo_a, lo_b, out=lo_a)  # lo_a is a's own array (or a fresh frame)
+        ranges = (lo, hi, sharpest, np.maximum(a[6], b[6], out=a[6]))
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    if len(a) > 3:
-        np.minimum(a[3], b[3], out=a[3])
-        np.maximum(a[4], b[4], out=a[4])
-        sharper = b[6] > a[6]
-        a[5][sharper] = b[5][sharper]
-        np.maximum(a[6], b[6], out=a[6])
-        return a[0], a[1], a[2] + b[2], a[3], a[4], a[5], a[6]
-    return a[0], a[1], a[2] + b[2]
+    return (a[0], a[1], a[2] + b[2], *ranges)
+
+
+def frame_range_of(node):
+    """``(min, max, sharpest, focus)`` of a computed graph's result (one frame or merged)."""
+    lo, hi, sharpest = _frames_of(node)
+    return lo, hi, sharpest, node[6]
 
 
 def weighted_sum_graph(
