@@ -54,6 +54,8 @@ FALLBACK_SMOOTH_PX = 8.0  # smoothing of the blend weight
 
 def _grey(image: np.ndarray) -> np.ndarray:
     image = np.asarray(image, np.float32)
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)  # luma weights; ~10x faster than a mean
     return image.mean(axis=2) if image.ndim == 3 else image
 
 
@@ -61,12 +63,13 @@ def focus_measure(frame) -> np.ndarray:
     """Per-pixel sharpness of one frame: Laplacian energy of its grey, smoothed (rows, cols)."""
     grey = _grey(frame)
     lap = cv2.Laplacian(grey, cv2.CV_32F, ksize=3)
-    return cv2.GaussianBlur(lap * lap, (0, 0), FOCUS_SIGMA_PX)
+    side = 2 * int(FOCUS_SIGMA_PX) + 1  # a box of about the same reach: O(1) per pixel
+    return cv2.blur(lap * lap, (side, side))
 
 
 def _display(grey: np.ndarray) -> np.ndarray:
-    """A display-like (gamma 1/2.2) version of linear grey, so the floor is in levels."""
-    return np.power(np.clip(grey, 0.0, None), 1.0 / 2.2)
+    """A display-like (gamma 1/2) version of linear grey, so the floor is in levels."""
+    return np.sqrt(np.maximum(grey, 0.0))
 
 
 def local_contrast(grey: np.ndarray, sigma_px: float = 1.0, window_px: int = 15) -> np.ndarray:

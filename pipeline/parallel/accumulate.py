@@ -63,7 +63,11 @@ def _merge(a, b):
         sharper = b[6] > a[6]
         if sh_a.ndim == 3:
             sharper = sharper[..., np.newaxis]
-        sharpest = np.where(sharper, sh_b, sh_a)
+        if a[4] is None:
+            sharpest = np.where(sharper, sh_b, sh_a)
+        else:  # a's own array: update in place
+            sharpest = sh_a
+            np.copyto(sharpest, sh_b, where=np.broadcast_to(sharper, sh_a.shape))
         hi = np.maximum(hi_a, hi_b, out=hi_a if a[4] is not None else None)
         lo = np.minimum(lo_a, lo_b, out=lo_a)  # lo_a is a's own array (or a fresh frame)
         ranges = (lo, hi, sharpest, np.maximum(a[6], b[6], out=a[6]))
