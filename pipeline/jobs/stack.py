@@ -46,6 +46,11 @@ MIN_FRAME_SIDE_PX = 8  # smaller frames hold no usable detail (and no room for a
 
 
 # ----------------------------------------------------------------------------- limits
+# Wiener's white-noise gain at most this fraction of the average's noise reduction, i.e.
+# the result's noise at most this fraction of one frame's (issue 13, region benchmark).
+NOISE_TARGET = 0.7
+
+
 def check_frame_size(stack: Stack, shape: tuple[int, ...], options: StackOptions) -> None:
     """Refuse frames too small to process or larger than ``options.max_pixels`` (header only)."""
     rows, cols = shape[:2]
@@ -392,7 +397,7 @@ def process_stack(
         clipped=clipped,
         kernel_samples=kernel_samples,
         source=_describe_frames(stack),
-        noise_gain=frame_noise_gain(weights),
+        noise_gain=NOISE_TARGET * frame_noise_gain(weights),
     )
     lo, hi, sharpest, _ = frame_range  # issue 13: the stack's ends, then no rims or moats
     result = guard.clip_to_frames(guard.sharpest_fallback(result, sharpest), lo, hi)
