@@ -48,7 +48,7 @@ def clip_to_frames(result, lo, hi, radius_px: int = GUARD_RADIUS_PX) -> np.ndarr
 # ----------------------------------------------------------------------------- stack ends
 FOCUS_SIGMA_PX = 8.0  # smoothing of the focus measure: coherent picks, not per-pixel noise
 CONTRAST_WINDOW_PX = 15  # local contrast window of the fallback
-FALLBACK_FLOOR = 2.0 / 255.0  # display levels the sharpest frame must win by
+FALLBACK_FLOOR = 1.0 / 255.0  # display levels the sharpest frame must win by
 FALLBACK_SMOOTH_PX = 8.0  # smoothing of the blend weight
 
 
