@@ -34,6 +34,9 @@ def _natural_prior_scale(y, valid, sigma, kernel) -> np.ndarray:
     return np.maximum(s2, 4.0 * sigma**2)
 
 
+MAX_NOISE_GAIN = 10.0  # ceiling of the automatic Wiener filter's white-noise gain
+
+
 def _gain_grid(kernel: np.ndarray, prior: str, shape=None):
     """``|K|^2``, the regulariser's spectrum and the rfft weights on one grid."""
     if shape is None:
@@ -166,8 +169,11 @@ def _plan_wiener(
             )
             scale = np.maximum((var - sigma**2) / float(np.sum(k**2)), sigma**2)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
-        if noise_gain is not None:  # never amplify white noise by more than noise_gain
-            lam = np.maximum(lam, lam_for_noise_gain(k, float(noise_gain), prior))
+        # never amplify white noise by more than noise_gain (issue 13), nor ever by more
+        # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
+        # lens PSF's spectral zeros amplify round-off (issue 14: an 89 px pillbox, -11 dB)
+        gain = MAX_NOISE_GAIN if noise_gain is None else min(float(noise_gain), MAX_NOISE_GAIN)
+        lam = np.maximum(lam, lam_for_noise_gain(k, gain, prior))
     lam = np.clip(lam, _LAM_MIN, None)
     variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
     pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))

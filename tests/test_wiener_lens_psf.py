@@ -1,0 +1,40 @@
+"""Issue 14: automatic Wiener on single lens PSFs never makes an input worse than it was."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+from skimage import data
+
+from pipeline.core.colour import srgb_to_linear
+from pipeline.core.deconvolve import deconvolve
+from pipeline.core.psf import kernel_size, raster_pillbox
+
+
+def psnr(a, b, border=20):
+    return 10 * np.log10(1.0 / np.mean((a - b)[border:-border, border:-border] ** 2))
+
+
+@pytest.fixture(scope="module")
+def sharp():
+    return srgb_to_linear(data.camera()[:256, :256] / 255.0)
+
+
+@pytest.mark.parametrize("diameter", [5, 21, 45, 89])
+@pytest.mark.parametrize("noise", [0.0, 0.01])
+def test_pillbox_restoration_is_never_worse_than_its_input(sharp, diameter, noise):
+    k = raster_pillbox(diameter, kernel_size(diameter) // 2)
+    k = k / k.sum()
+    blurred = ndimage.convolve(sharp, k, mode="reflect")
+    if noise:
+        blurred = blurred + np.random.default_rng(diameter).normal(0, noise, blurred.shape)
+    assert psnr(deconvolve(blurred, k), sharp) >= psnr(blurred, sharp)
+
+
+@pytest.mark.xfail(reason="issue 14: the noise estimate reads pixel texture as noise", strict=True)
+def test_a_delta_kernel_leaves_a_checkerboard_alone():
+    delta = np.zeros((3, 3))
+    delta[1, 1] = 1.0
+    board = 0.1 + 0.8 * (np.indices((64, 64)).sum(0) % 2)
+    assert np.abs(deconvolve(board, delta) - board).max() < 0.01
