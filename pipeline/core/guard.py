@@ -73,9 +73,14 @@ def _display(grey: np.ndarray) -> np.ndarray:
 
 
 def local_contrast(grey: np.ndarray, sigma_px: float = 1.0, window_px: int = 15) -> np.ndarray:
-    """RMS of a band (grey minus its Gaussian blur of ``sigma_px``) over square windows."""
+    """RMS of a band-pass (Gaussian ``sigma_px`` minus Gaussian ``3 sigma_px``) over windows.
+
+    The lower cut-off keeps pixel noise (and JPEG grain) out: flat areas of a noisy
+    frame must not read as more detailed than a clean result.
+    """
     g = _display(grey)
-    band = g - cv2.GaussianBlur(g, (0, 0), sigma_px)
+    fine = cv2.GaussianBlur(g, (0, 0), sigma_px)
+    band = fine - cv2.GaussianBlur(fine, (0, 0), 2.8 * sigma_px)
     return np.sqrt(np.maximum(cv2.blur(band * band, (window_px, window_px)), 0.0))
 
 
@@ -95,8 +100,8 @@ def sharpest_fallback(result, sharpest) -> np.ndarray:
     a, b = _grey(sharpest), _grey(result)
     gain = np.maximum(  # fine detail, and coarser contrast (bars, lettering)
         local_contrast(a) - local_contrast(b),
-        local_contrast(a, 3.0, 2 * CONTRAST_WINDOW_PX + 1)
-        - local_contrast(b, 3.0, 2 * CONTRAST_WINDOW_PX + 1),
+        local_contrast(a, 2.0, 2 * CONTRAST_WINDOW_PX + 1)
+        - local_contrast(b, 2.0, 2 * CONTRAST_WINDOW_PX + 1),
     )
     alpha = np.clip((gain - FALLBACK_FLOOR) / FALLBACK_FLOOR, 0.0, 1.0)
     alpha = cv2.GaussianBlur(alpha.astype(np.float32), (0, 0), FALLBACK_SMOOTH_PX)
