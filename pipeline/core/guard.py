@@ -67,6 +67,14 @@ def focus_measure(frame) -> np.ndarray:
     return cv2.blur(lap * lap, (side, side))
 
 
+def focus_weight(frame) -> np.ndarray:
+    """A frame's weight in the soft all-in-focus composite: ``focus_measure ** 2`` (+ a tiny
+    floor). Sharp content dominates where one frame is in focus; in flat areas the weights
+    are alike and the composite is a smooth mean, not a patchwork of per-pixel picks."""
+    f = focus_measure(frame)
+    return f * f + np.float32(1e-20)
+
+
 def _display(grey: np.ndarray) -> np.ndarray:
     """A display-like (gamma 1/2) version of linear grey, so the floor is in levels."""
     return np.sqrt(np.maximum(grey, 0.0))

@@ -24,9 +24,9 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7). With
     ``frame_range`` (one number as ``weight``) also the weight and the frame's focus
-    measure: :func:`_merge` recovers the unweighted frame as ``sum / weight`` for the
-    running per-pixel minimum, maximum and sharpest frame (see :mod:`pipeline.core.guard`),
-    so a leaf holds no extra copy of its frame.
+    weight: :func:`_merge` recovers the unweighted frame as ``sum / weight`` for the
+    running per-pixel minimum, maximum and focus-weighted sum of the frames (see
+    :mod:`pipeline.core.guard`), so a leaf holds no extra copy of its frame.
     """
     t0 = time.perf_counter()
     frame = read_frame(path)
@@ -38,7 +38,7 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
     if frame_range:
         if np.ndim(weight) != 0 or not weight > 0:
             raise ValueError("frame ranges need one positive weight per frame")
-        extra = (float(weight), None, None, guard.focus_measure(frame))
+        extra = (float(weight), None, None, guard.focus_weight(frame))
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
@@ -47,39 +47,34 @@ def _warped_leaf(path: str, homography, weight, shape, frame_range: bool = False
 
 
 def _frames_of(node):
-    """``(min, max, sharpest)`` of a node: a leaf's own frame (``sum / weight``) or merged."""
+    """``(min, max, sum q frame)`` of a node: from a leaf's own frame (``sum / weight``) or
+    merged; ``q`` is the frame's focus weight (:func:`pipeline.core.guard.focus_weight`)."""
     if node[4] is None:
         frame = node[0] / np.float32(node[3])
-        return frame, frame, frame
+        q = node[6][..., np.newaxis] if frame.ndim == 3 else node[6]
+        return frame, frame, frame * q
     return node[3], node[4], node[5]
 
 
 def _merge(a, b):
     """Sum two partial weighted sums (in place), OR their clipped masks, add decode times;
-    with frame ranges, the running minimum, maximum and sharpest frame too."""
+    with frame ranges, the running minimum, maximum and focus-weighted sum too."""
     ranges = ()
     if len(a) > 3:  # before the in-place sum: a leaf's frame is its sum / weight
-        (lo_a, hi_a, sh_a), (lo_b, hi_b, sh_b) = _frames_of(a), _frames_of(b)
-        sharper = b[6] > a[6]
-        if sh_a.ndim == 3:
-            sharper = sharper[..., np.newaxis]
-        if a[4] is None:
-            sharpest = np.where(sharper, sh_b, sh_a)
-        else:  # a's own array: update in place
-            sharpest = sh_a
-            np.copyto(sharpest, sh_b, where=np.broadcast_to(sharper, sh_a.shape))
+        (lo_a, hi_a, s_a), (lo_b, hi_b, s_b) = _frames_of(a), _frames_of(b)
         hi = np.maximum(hi_a, hi_b, out=hi_a if a[4] is not None else None)
         lo = np.minimum(lo_a, lo_b, out=lo_a)  # lo_a is a's own array (or a fresh frame)
-        ranges = (lo, hi, sharpest, np.maximum(a[6], b[6], out=a[6]))
+        ranges = (lo, hi, np.add(s_a, s_b, out=s_a), np.add(a[6], b[6], out=a[6]))
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one merge: safe in place
     np.logical_or(a[1], b[1], out=a[1])
     return (a[0], a[1], a[2] + b[2], *ranges)
 
 
 def frame_range_of(node):
-    """``(min, max, sharpest, focus)`` of a computed graph's result (one frame or merged)."""
-    lo, hi, sharpest = _frames_of(node)
-    return lo, hi, sharpest, node[6]
+    """``(min, max, focus-weighted frame, sum of focus weights)`` of a computed graph's result."""
+    lo, hi, weighted = _frames_of(node)
+    q = node[6][..., np.newaxis] if weighted.ndim == 3 else node[6]
+    return lo, hi, weighted / q, node[6]
 
 
 def weighted_sum_graph(
