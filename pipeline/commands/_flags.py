@@ -22,9 +22,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-# Mirrors of pipeline.jobs.options / pipeline.io.write (tests/test_cli.py checks they agree):
-# importing those modules would import numpy.
-METHODS = ("wiener", "rl", "sparse")
+# Mirrors of pipeline.jobs.options / pipeline.io.write (tests/test_cli_flags.py checks they
+# agree): importing those modules would import numpy.
 # The sparse prior is not offered on the command line: 100-160x Wiener's time for
 # +0.06-0.09 dB (issue 13); the API, the accuracy benchmark and workflow files keep it.
 CLI_METHODS = ("wiener", "rl")

@@ -34,7 +34,13 @@ from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
-from pipeline.jobs.result import check_not_input, check_output, restore_image, write_result
+from pipeline.jobs.result import (
+    RESCALE_ABOVE,
+    check_not_input,
+    check_output,
+    restore_image,
+    write_result,
+)
 from pipeline.jobs.sweep import process_sweep_stack
 from pipeline.parallel.accumulate import weighted_sum_graph
 from pipeline.parallel.scheduler import _TaskProgress
@@ -74,7 +80,12 @@ def check_lens_size(stack: Stack, lens: Lens | None, shape: tuple[int, ...]) -> 
         "%s: the frames are %dx%d px but lens profile %s describes a %dx%d px sensor; its "
         "pixel pitch (so the blur in px, and the kernel) does not fit these frames: use a "
         "profile for this resolution",
-        stack.files[0], cols, rows, lens.source or lens.name, lens.width_px, lens.height_px,
+        stack.files[0],
+        cols,
+        rows,
+        lens.source or lens.name,
+        lens.width_px,
+        lens.height_px,
     )
 
 
@@ -113,15 +124,13 @@ def read_previews(
 ) -> list[np.ndarray]:
     """Reduced grey copies of every frame, decoded in parallel (one cheap decode each).
 
-    Float frames far brighter than white (values above 1e4) are divided by their common
+    Float frames far brighter than white (above ``RESCALE_ABOVE``) are divided by their common
     peak, so alignment statistics cannot overflow float32.
     """
     with _TaskProgress("read_preview", lambda done: progress("preview", done, len(files))):
-        previews = list(
-            dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files])
-        )
+        previews = list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
     peak = max((float(np.max(np.abs(p))) for p in previews if p.size), default=0.0)
-    if peak > 1e4:
+    if peak > RESCALE_ABOVE:
         previews = [(p.astype(np.float64) / peak).astype(np.float32) for p in previews]
     return previews
 
@@ -173,14 +182,14 @@ def align_stack(
     start: float,
     *,
     progress: Progress = _no_progress,
-    previews_needed: bool = False,
+    fit_blur_span: bool = False,
 ) -> AlignedStack:
     """Check the frames, find their focus positions and align them (Sec. 9).
 
     Positions come from stack.toml/EXIF; without them, from the measured
-    magnifications (:func:`positions_from_scales`). ``previews_needed`` keeps the
-    reduced grey copies (the blur-span fit uses them) even with ``--align`` other
-    than ``estimate``.
+    magnifications (:func:`positions_from_scales`). With ``fit_blur_span`` and no
+    absolute positions with a lens, the reduced grey copies are kept (the blur-span
+    fit uses them) even with ``--align`` other than ``estimate``.
     """
     shape = check_frames(stack).shape
     check_frame_size(stack, shape, options)
@@ -188,7 +197,7 @@ def align_stack(
     positions, absolute = _sidecar_positions(stack, lens)
     t0 = time.perf_counter()
     previews = None
-    if options.align == "estimate" or previews_needed:
+    if options.align == "estimate" or (fit_blur_span and not (lens is not None and absolute)):
         previews = read_previews(stack.files, options.align_max_side_px, progress)
     progress("align", 0, 1)
     alignments = _align(stack, options, positions, absolute, previews, shape)
@@ -330,9 +339,15 @@ def process_stack(
     check_not_input(output, stack.files, options.save_kernel)
     if stack.kind == "sweep":
         return process_sweep_stack(stack, lens, output, options, progress=progress)
-    absolute_known = lens is not None and _sidecar_positions(stack, lens)[1]
-    needs_fit = not absolute_known and options.blur_span_px is None
-    aligned = align_stack(stack, lens, options, start, progress=progress, previews_needed=needs_fit)
+    aligned = align_stack(
+        stack,
+        lens,
+        options,
+        start,
+        progress=progress,
+        fit_blur_span=options.blur_span_px is None,
+    )
+    needs_fit = options.blur_span_px is None and not (lens is not None and aligned.absolute)
     positions, timings = aligned.positions, aligned.timings
     weights = constant_speed_weights(positions, ends=options.sweep_ends)
 
@@ -355,7 +370,6 @@ def process_stack(
                 f"{stack.base_dir}: all {n} frames have the same focus position: nothing to sweep"
             )
         small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
-        aligned.previews = None  # memory flat in frames: only the small copies are used now
         max_span = min(400.0, float(np.hypot(*aligned.shape[:2])))  # bounded by the frame
         try:
             blur_span = defocus.estimate_blur_span(
@@ -368,7 +382,7 @@ def process_stack(
             ) from err
         del small
         log.info("estimated blur span: %.1f px across the stack", blur_span)
-    aligned.previews = None  # not needed past the alignment and the blur fit
+    aligned.previews = None  # not needed past the alignment (and the blur fit)
     kernel, kernel_samples, kernel_summary = stack_kernel(
         positions, weights, lens=lens, absolute=aligned.absolute, blur_span_px=blur_span
     )
