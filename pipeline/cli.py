@@ -6,6 +6,7 @@ job inside ``run``), so ``flexdof --help`` never loads numpy, dask or OpenCV.
 
 from __future__ import annotations
 
+import argparse
 import ctypes
 import logging
 import os
@@ -42,6 +43,15 @@ def configure_logging(quiet: bool, verbose: bool) -> None:
     level = logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING
     logging.basicConfig(format="%(levelname)s: %(message)s")  # no-op when already set up
     logging.getLogger().setLevel(level)
+
+
+def subcommands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):
+    """Yield ``(command path, parser)`` for every sub-command below ``parser``."""
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for name, sub in action.choices.items():
+                yield (*path, name), sub
+                yield from subcommands(sub, (*path, name))
 
 
 def tune_process() -> None:

@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from pipeline import cli
-from pipeline.cli import build_parser, main
+from pipeline.cli import build_parser, main, subcommands
 from pipeline.commands import _flags
 
 REPO = Path(__file__).resolve().parents[1]
@@ -33,15 +33,6 @@ RESULT_COMMANDS = (
     ("workflow", "status"),
     ("sample-path",),
 )
-
-
-def _subparsers(parser: argparse.ArgumentParser, path=()):
-    """(command path, parser) for every parser below ``parser``."""
-    for action in parser._actions:
-        if isinstance(action, argparse._SubParsersAction):
-            for name, sub in action.choices.items():
-                yield (*path, name), sub
-                yield from _subparsers(sub, (*path, name))
 
 
 def test_building_the_parser_imports_no_heavy_library():
@@ -83,9 +74,7 @@ def test_mirrored_constants_agree_with_the_jobs():
 def test_every_option_has_help_and_one_vocabulary():
     parser = build_parser()
     banned = {"--out", "--near", "--far", "--exposure", "--depth-map", "--sweep-mm"}
-    for path, sub in _subparsers(parser):
-        if path[0] == "tether":
-            continue  # owned by the tethering work
+    for path, sub in subcommands(parser):
         for action in sub._actions:
             if isinstance(action, argparse._SubParsersAction) or action.help == argparse.SUPPRESS:
                 continue
@@ -97,7 +86,7 @@ def test_every_option_has_help_and_one_vocabulary():
 
 
 def test_json_on_every_command_with_a_result():
-    commands = dict(_subparsers(build_parser()))
+    commands = dict(subcommands(build_parser()))
     for path in RESULT_COMMANDS:
         flags = {s for a in commands[path]._actions for s in a.option_strings}
         assert "--json" in flags, path

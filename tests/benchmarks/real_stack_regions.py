@@ -38,6 +38,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_stacks import SHARED, STACKS  # the same four stacks as the sharpness benchmark
 from region_measures import (
     GRID,
     MEASURES,
@@ -48,13 +49,6 @@ from region_measures import (
     verdict,
 )
 
-SHARED = Path(__file__).resolve().parents[3] / "shared" / "data"
-STACKS = {
-    "pcb7": "focusstack-pcb/pcb7/pcb_*.jpg",
-    "pcb10": "focusstack-pcb/pcb10/pcb_*.JPG",
-    "beetle": "chimpstackr-beetle/DSC_*.jpg",
-    "amber": "shinestacker-amber/*.jpg",
-}
 FOCUS_STACK = SHARED / "peer-results" / "focus-stack"
 REGION_NAMES = [
     "top-left",

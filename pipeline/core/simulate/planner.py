@@ -444,6 +444,15 @@ def _neighbour(a: np.ndarray, dy: int, dx: int, fill) -> np.ndarray:
     return p[1 + dy : 1 + dy + r, 1 + dx : 1 + dx + c]
 
 
+def _outline(alpha: np.ndarray) -> np.ndarray:
+    """A surface's outline: its partly covered pixels and those with an uncovered neighbour."""
+    valid = alpha > 0
+    outside = np.zeros(alpha.shape, bool)
+    for dy, dx in _NEIGHBOURS:
+        outside |= ~_neighbour(valid, dy, dx, True)
+    return valid & ((alpha < 1) | outside)
+
+
 def _edges(scene: Scene, k: float) -> tuple[np.ndarray, float]:
     """Depth-edge pixels and the largest blur-radius jump (px) between neighbours.
 
@@ -469,11 +478,7 @@ def _edges(scene: Scene, k: float) -> tuple[np.ndarray, float]:
         worst = max(worst, float(jump.max()))
         mask |= valid & (jump > 1.0)
     for j, s in enumerate(scene.surfaces):
-        valid = s.alpha > 0
-        outside = np.zeros(scene.shape, bool)
-        for dy, dx in _NEIGHBOURS:
-            outside |= ~_neighbour(valid, dy, dx, True)
-        rim = valid & ((s.alpha < 1) | outside)
+        rim = _outline(s.alpha)
         if not rim.any():
             continue
         for i in range(len(scene.surfaces)):
@@ -518,10 +523,7 @@ def _occlusion_error(scene: Scene, camera: Camera, bands, p_ref: float) -> float
     total = 0.0
     for j, near in enumerate(scene.surfaces):
         valid = near.alpha > 0
-        outside = np.zeros(scene.shape, bool)
-        for dy, dx in _NEIGHBOURS:
-            outside |= ~_neighbour(valid, dy, dx, True)
-        rim = valid & ((near.alpha < 1) | outside)
+        rim = _outline(near.alpha)
         for i, far in enumerate(scene.surfaces):
             if i == j or not rim.any():
                 continue

@@ -218,13 +218,14 @@ def _alignment_rows(config: Config, prep: Prepared, work: Path) -> list[Row]:
 # ----------------------------------------------------------------------------- deconvolution
 def deconvolution_rows(config: Config, prep: Prepared) -> list[Row]:
     """Method, iterations, regularisation, kernel variance, tiles, dtype, kernel size."""
-    lam = dc.plan(
+    wiener_plan = dc.plan(
         prep.average,
         prep.kernel,
         method="wiener",
         censored=prep.clipped,
         kernel_samples=prep.samples,
-    ).params["lam"]
+    )
+    lam = wiener_plan.params["lam"]
 
     def run(
         knob,
@@ -304,13 +305,7 @@ def deconvolution_rows(config: Config, prep: Prepared) -> list[Row]:
         run("tile size", f"{t} px", t == StackOptions.tile_px, tile_px=t) for t in config.tiles_px
     ]
     tile = min(config.tiles_px)
-    depth = dc.plan(
-        prep.average,
-        prep.kernel,
-        method="wiener",
-        censored=prep.clipped,
-        kernel_samples=prep.samples,
-    ).depth
+    depth = wiener_plan.depth
     rows += [
         run(
             f"tile overlap ({tile} px tiles)",
