@@ -242,3 +242,12 @@ def test_render_reports_progress_per_step():
     assert calls and calls[-1][0] == calls[-1][1] and [d for d, _ in calls] == list(
         range(1, len(calls) + 1)
     )
+
+
+@pytest.mark.parametrize("flag", ["--max-pixels", "--tile-px"])
+def test_a_zero_limit_is_refused_not_replaced_by_the_default(tmp_path, capsys, flag):
+    sample = REPO / "stacks" / "motorcycle"
+    assert main(["stack", str(sample), "-o", str(tmp_path / "a.tif"), flag, "0"]) == 2
+    name = flag.lstrip("-").replace("-", "_")
+    assert f"{name} must be an integer >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "a.tif").exists()

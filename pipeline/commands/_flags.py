@@ -246,13 +246,18 @@ def stack_options(args: argparse.Namespace):
     from pipeline.jobs.options import StackOptions
 
     defaults = StackOptions()
+
+    def given(name: str):  # a flag the user gave (0 included), else the job's default
+        value = getattr(args, name, None)
+        return getattr(defaults, name) if value is None else value
+
     return StackOptions(
         lens=getattr(args, "lens", None),
-        method=getattr(args, "method", None) or defaults.method,
-        align=getattr(args, "align", None) or defaults.align,
+        method=given("method"),
+        align=given("align"),
         encoding=getattr(args, "encoding", None),
         blur_span_px=getattr(args, "blur_span_px", None),
-        tile_px=getattr(args, "tile_px", None) or defaults.tile_px,
+        tile_px=given("tile_px"),
         save_kernel=getattr(args, "save_kernel", None),
-        max_pixels=getattr(args, "max_pixels", None) or defaults.max_pixels,
+        max_pixels=given("max_pixels"),
     )

@@ -41,6 +41,7 @@ class StackOptions:
         if self.blur_span_px is not None:
             validate.positive("blur_span_px", self.blur_span_px)
         validate.whole("max_pixels", self.max_pixels)
+        validate.whole("tile_px", self.tile_px)
 
 
 @dataclasses.dataclass
