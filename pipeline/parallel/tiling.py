@@ -1,4 +1,4 @@
-"""Tiled deconvolution with dask (the edge around :mod:`pipeline.deconvolve`).
+"""Tiled deconvolution with dask (the edge around :mod:`pipeline.core.deconvolve`).
 
 The whole-image quantities (noise level, regularisation, RL background) are
 resolved once by :func:`pipeline.core.deconvolve.dispatch.plan`; every tile is then restored with

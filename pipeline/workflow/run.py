@@ -10,7 +10,7 @@ the output directory or collide) before any work starts.
 A run (:func:`run_workflow`) processes only stacks whose *fingerprint* -- the
 SHA-256 of every input file's content, the options, the output name and the
 flexdof version -- differs from the ledger's last completed one, records every
-stack in the ledger (:mod:`pipeline.ledger`) and holds the output directory's
+stack in the ledger (:mod:`pipeline.workflow.ledger`) and holds the output directory's
 run lock throughout. The commented examples in ``workflows/`` document the
 schema.
 """

@@ -9,7 +9,7 @@ ground truth, and each setting's error and time are measured in the same run:
   :data:`REFERENCE_THETA_ORDER`), mean over depths, on the Sec. 4.1 sweep
   (12.5 mm f/1.4, p(0) = 12.5 mm, 1 mm/s, 0.36 s, 4.65 um pixels).
 * Simulation: layer tolerance, occlusion, magnification. Error: RMS difference per
-  unit RMS contrast (the tolerance's own meaning, :mod:`pipeline.simulate`) against a
+  unit RMS contrast (the tolerance's own meaning, :mod:`pipeline.core.simulate`) against a
   render at :attr:`Config.truth_tolerance`.
 * Alignment (Sec. 9): none / analytic / estimated at several matching resolutions.
   Error: corner reprojection error against the true magnification ``p_i / p_ref``, and
