@@ -101,7 +101,7 @@ def mtf(kernel: np.ndarray, *, n: int = 256) -> tuple[np.ndarray, np.ndarray]:
     Returns frequencies (cycles/px, 0..0.5) and ``|K|`` there (Fig. 9a).
     """
     kernel = np.asarray(kernel, float)
-    size = max(n, kernel.shape[0])
+    size = max(n, *kernel.shape)
     spectrum = centred_fft(kernel, (size, size))
     m = spectrum.shape[1]
     return np.arange(m // 2 + 1) / m, np.abs(spectrum[0, : m // 2 + 1])
