@@ -19,7 +19,6 @@ import logging
 
 import cv2
 import numpy as np
-from scipy.signal import fftconvolve
 
 from pipeline.core.psf import kernel_size, raster_pillbox
 from pipeline.errors import InputError
@@ -95,10 +94,8 @@ def estimate_blur_span(
         total, count = 0.0, 0
         for i, j in pairs:
             diameter = span_px * abs(x[i] - x[j]) / downscale
-            half = kernel_size(diameter) // 2
-            predicted = fftconvolve(
-                np.pad(grey[i], half, mode="reflect"), raster_pillbox(diameter, half), mode="valid"
-            )
+            pillbox = raster_pillbox(diameter, kernel_size(diameter) // 2).astype(np.float32)
+            predicted = cv2.filter2D(grey[i], -1, pillbox, borderType=cv2.BORDER_REFLECT_101)
             residual = (predicted - grey[j])[masks[i]]
             total += float(np.dot(residual, residual))
             count += residual.size

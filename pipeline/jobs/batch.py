@@ -51,7 +51,12 @@ from pipeline.io.hashing import sha256_file
 from pipeline.io.write import OutputError
 from pipeline.jobs.options import StackOptions
 from pipeline.jobs.stack import process_stack
-from pipeline.parallel.scheduler import CONNECT_TIMEOUT, SchedulerError, check_scheduler
+from pipeline.parallel.scheduler import (
+    CONNECT_TIMEOUT,
+    SchedulerError,
+    check_scheduler,
+    local_threads,
+)
 
 log = logging.getLogger(__name__)
 
@@ -265,7 +270,7 @@ def _run_local(jobs, concurrency, threads, on_result, on_progress) -> list[dict]
         _local_sinks[token] = on_progress
     try:
         with _ResultCallback(on_result or (lambda result: None)):
-            results = dask.compute(*graph, scheduler="threads", num_workers=concurrency)
+            results = dask.compute(*graph, scheduler=local_threads(concurrency))
     finally:
         _local_sinks.pop(token, None)
     return list(results)
