@@ -38,11 +38,13 @@ def build_parser() -> Parser:
 
 
 def configure_logging(quiet: bool, verbose: bool) -> None:
-    """Warnings and errors by default; ``-v`` adds normal events (INFO) and DEBUG; ``-q``
-    leaves errors only."""
+    """Warnings and errors by default; ``-v`` adds flexdof's own events (INFO and DEBUG),
+    not the libraries' (an EXIF reader's DEBUG is one line per tag); ``-q`` leaves errors
+    only."""
     level = logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING
     logging.basicConfig(format="%(levelname)s: %(message)s")  # no-op when already set up
-    logging.getLogger().setLevel(level)
+    logging.getLogger().setLevel(max(level, logging.WARNING))
+    logging.getLogger("pipeline").setLevel(level)
 
 
 def subcommands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):

@@ -69,3 +69,22 @@ def test_zero_threads_is_named(repo_root, tmp_path, capsys):
     sample = str(repo_root / "stacks" / "motorcycle")
     assert main(["stack", sample, "-o", str(tmp_path / "x.tif"), "--threads", "0"]) == 2
     assert "--threads" in capsys.readouterr().err
+
+
+def test_verbose_shows_flexdof_debug_but_not_the_libraries():
+    """-v once printed the EXIF reader's DEBUG, one line per tag of every frame."""
+    import logging
+
+    from pipeline.cli import configure_logging
+
+    saved = logging.getLogger().level, logging.getLogger("pipeline").level
+    try:
+        configure_logging(quiet=False, verbose=True)
+        assert logging.getLogger("pipeline.io.exif").isEnabledFor(logging.DEBUG)
+        assert not logging.getLogger("exifread").isEnabledFor(logging.INFO)
+        assert logging.getLogger("exifread").isEnabledFor(logging.WARNING)
+        configure_logging(quiet=True, verbose=False)
+        assert not logging.getLogger("pipeline.jobs").isEnabledFor(logging.WARNING)
+    finally:
+        logging.getLogger().setLevel(saved[0])
+        logging.getLogger("pipeline").setLevel(saved[1])
