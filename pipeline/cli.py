@@ -61,14 +61,16 @@ def tune_process() -> None:
 
     * One BLAS thread: the only BLAS call (the blur-span fit's small ``np.dot``) left
       OpenBLAS threads spinning on the shared cores (pcb10: -0.6 s CPU of 4.8).
-    * glibc returns freed frame buffers to the system (``M_MMAP_THRESHOLD`` 128 KiB)
-      instead of keeping them, so peak memory follows the frames in flight (pcb7:
-      455 -> 377 MiB). Skipped where the C library is not glibc.
+    * One glibc malloc arena (``M_ARENA_MAX`` 1): with an arena per dask thread, a
+      frame buffer freed in one thread is not reused by another, and peak memory grows
+      (pcb7: 389 -> 344 MiB). Forcing frame buffers out to ``mmap`` instead
+      (``M_MMAP_THRESHOLD`` 128 KiB, 317 MiB) page-faults every new buffer in again:
+      +0.6 s of system CPU on pcb7 (2.5 s in all). Skipped where libc is not glibc.
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     try:
         libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(-3, 128 * 1024)  # M_MMAP_THRESHOLD
+        libc.mallopt(-8, 1)  # M_ARENA_MAX
     except (OSError, AttributeError):
         pass
 
