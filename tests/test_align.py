@@ -349,6 +349,22 @@ def test_textureless_frame_falls_back(scene, caplog):
         assert np.all(np.isfinite(a.homography)) and math.isfinite(a.scale)
 
 
+@pytest.mark.parametrize("chain", [True, False])
+def test_parallel_matching_gives_the_serial_result(scene, chain):
+    """Pairs matched ahead on 3 threads, with a failed frame that re-anchors the chain."""
+    frames = [
+        render(scene, similarity(s, 0, (0.5 * k, 0), CENTRE), FRAME, OFFSET, 0.5 * k)
+        for k, s in enumerate((1.04, 1.02, 1.0, 0.98, 0.96))
+    ]
+    frames[3] = np.full(FRAME, 0.25, np.float32)
+    serial = estimate_alignment(frames, chain=chain, workers=1)
+    parallel = estimate_alignment(frames, chain=chain, workers=3)
+    assert [a.ok for a in serial] == [True, True, True, False, True]
+    for a, b in zip(serial, parallel):
+        np.testing.assert_array_equal(a.homography, b.homography)
+        assert (a.method, a.ok, a.message) == (b.method, b.ok, b.message)
+
+
 def test_textureless_uses_given_fallback():
     flat = [np.zeros((200, 300), np.float32), np.full((200, 300), 3.0, np.float32)]
     fb = analytic_alignment([12.5, 12.6], (200, 300), reference=1)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import logging
 import math
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import cv2
@@ -365,6 +366,7 @@ def estimate_alignment(
     method: str = "auto",
     min_correlation: float = 0.5,
     fallback: Sequence[Alignment] | None = None,
+    workers: int = 1,
 ) -> list[Alignment]:
     """Homographies that map every frame of a focal stack onto the reference frame (Sec. 9).
 
@@ -397,6 +399,9 @@ def estimate_alignment(
     fallback : sequence of Alignment, optional
         Per-frame transforms to use where estimation fails (e.g. from
         :func:`analytic_alignment`); default the anchor's (neighbour's) transform.
+    workers : int
+        Threads matching frame pairs (OpenCV releases the GIL). The pairs a chain
+        will need are matched ahead, in parallel; the result does not depend on it.
 
     Returns
     -------
@@ -488,33 +493,43 @@ def estimate_alignment(
                 return w, cc, how
         raise _EstimationError("; ".join(reasons) or "no estimate")
 
+    sides = (range(ref - 1, -1, -1), range(ref + 1, n))
+    # The pair each frame is matched in if every match succeeds, started ahead of the chain.
+    expected = [
+        (i, side[k - 1] if chain and k else ref) for side in sides for k, i in enumerate(side)
+    ]
+    pool = ThreadPoolExecutor(max(1, min(workers, len(expected))), thread_name_prefix="align")
+    ahead = {pair: pool.submit(match, *pair) for pair in expected}
+
     out: list[Alignment | None] = [None] * n
     out[ref] = Alignment(np.eye(3), 1.0, "reference", True, "", 1.0)
-    for side in (range(ref - 1, -1, -1), range(ref + 1, n)):
-        anchor = ref
-        for i in side:
-            try:
-                w, cc, how = match(i, anchor)
-                h = compose(out[anchor].homography, rescale_homography(w, reduced, full_shape))
-                why = _implausible(h, full_shape)
-                if why:
-                    raise _EstimationError(f"composed transform: {why}")
-            except _EstimationError as err:
-                base = fallback[i] if fallback is not None else out[anchor]
-                hint = "the given fallback" if fallback is not None else f"frame {anchor}'s"
-                logger.warning(
-                    "alignment of frame %d to frame %d failed (%s); using %s transform",
-                    i,
-                    anchor,
-                    err,
-                    hint,
-                )
-                h = _as_homography(base.homography)
-                out[i] = Alignment(h, 1.0 / scale_of(h), "fallback", False, str(err), None)
-                continue
-            out[i] = Alignment(h, 1.0 / scale_of(h), how, True, "", cc)
-            if chain:
-                anchor = i
+    with pool:
+        for side in sides:
+            anchor = ref
+            for i in side:
+                try:
+                    pending = ahead.get((i, anchor))
+                    w, cc, how = pending.result() if pending is not None else match(i, anchor)
+                    h = compose(out[anchor].homography, rescale_homography(w, reduced, full_shape))
+                    why = _implausible(h, full_shape)
+                    if why:
+                        raise _EstimationError(f"composed transform: {why}")
+                except _EstimationError as err:
+                    base = fallback[i] if fallback is not None else out[anchor]
+                    hint = "the given fallback" if fallback is not None else f"frame {anchor}'s"
+                    logger.warning(
+                        "alignment of frame %d to frame %d failed (%s); using %s transform",
+                        i,
+                        anchor,
+                        err,
+                        hint,
+                    )
+                    h = _as_homography(base.homography)
+                    out[i] = Alignment(h, 1.0 / scale_of(h), "fallback", False, str(err), None)
+                    continue
+                out[i] = Alignment(h, 1.0 / scale_of(h), how, True, "", cc)
+                if chain:
+                    anchor = i
     return out  # type: ignore[return-value]
 
 

@@ -43,7 +43,7 @@ from pipeline.jobs.result import (
 )
 from pipeline.jobs.sweep import process_sweep_stack
 from pipeline.parallel.accumulate import weighted_sum_graph
-from pipeline.parallel.scheduler import _TaskProgress
+from pipeline.parallel.scheduler import _TaskProgress, local_workers
 
 log = logging.getLogger(__name__)
 
@@ -427,7 +427,9 @@ def _align(stack, options, positions, absolute, previews, shape):
                 "(image or focus distances in stack.toml); use --align estimate"
             )
         return align.analytic_alignment(positions, shape)
-    estimated = align.estimate_alignment(previews, max_side_px=options.align_max_side_px)
+    estimated = align.estimate_alignment(
+        previews, max_side_px=options.align_max_side_px, workers=local_workers()
+    )
     alignments = []
     for path, a in zip(stack.files, estimated):
         if not a.ok:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import functools
+import os
 import socket
 import struct
 import time
@@ -145,7 +146,7 @@ def scheduler_context(scheduler: str | None = None, threads: int | None = None):
         with client, dask.config.set(scheduler=client):
             yield
     else:
-        with dask.config.set(scheduler=local_threads(threads)):
+        with dask.config.set(scheduler=local_threads(threads), num_workers=threads):
             yield
 
 
@@ -157,3 +158,8 @@ def local_threads(threads: int | None = None) -> Callable:
     every single-stack run that never uses one.
     """
     return functools.partial(dask.threaded.get, num_workers=threads)
+
+
+def local_workers() -> int:
+    """Threads a job may use outside dask graphs: ``--threads``, else one per core."""
+    return int(dask.config.get("num_workers", None) or os.cpu_count() or 1)
