@@ -2,6 +2,7 @@
 
     python tests/benchmarks/bench_vs_peer.py --focus-stack PATH [--repeats 5] [--out DIR]
     python tests/benchmarks/bench_vs_peer.py --focus-stack PATH --scaling [--repeats 3]
+    python tests/benchmarks/bench_vs_peer.py --focus-stack PATH --baseline ../base  # before/after
 
 Default mode, on pcb7 (``pcb7/pcb_*.jpg``, 7 frames 2048x1536; ``expected.jpg`` is
 another tool's result and is left out) and pcb10 (``pcb10/pcb_*.JPG``, 10 frames):
@@ -112,8 +113,21 @@ def flexdof_exe() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "pipeline.cli"]
 
 
-def commands_for(frames: list[str], tmp: Path, peer: str | None, decode: bool = True) -> dict:
+BASELINE_SNIPPET = (
+    "import sys; sys.path.insert(0, sys.argv.pop(1)); from pipeline.cli import main; "
+    "sys.argv[0] = 'flexdof'; sys.exit(main())"
+)
+
+
+def commands_for(
+    frames: list[str], tmp: Path, peer: str | None, decode: bool = True, baseline=None
+) -> dict:
     cmds = {"flexdof": [*flexdof_exe(), "stack", *frames, "-o", str(tmp / "flexdof.tif")]}
+    if baseline:  # another checkout of flexdof (e.g. a git worktree of an older commit)
+        cmds["flexdof@base"] = [
+            sys.executable, "-c", BASELINE_SNIPPET, str(baseline),
+            "stack", *frames, "-o", str(tmp / "base.tif"),
+        ]  # fmt: skip
     if decode:
         cmds["decode"] = [sys.executable, "-c", DECODE_SNIPPET, *frames]
     if peer:
@@ -151,7 +165,7 @@ def summarise(runs: dict[str, list[dict]]) -> dict:
             key: summary([m[key] for m in ms]) for key in ("wall_s", "peak_rss_mib", "cpu_s")
         }
     ratios = {}
-    for ref in ("focus-stack", "decode"):
+    for ref in ("focus-stack", "decode", "flexdof@base"):
         if ref not in runs or "flexdof" not in runs:
             continue
         for key in ("wall_s", "peak_rss_mib", "cpu_s"):
@@ -229,7 +243,8 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
         for name, pattern in STACKS.items():
             frames = frames_of(pattern)
             log(f"{name}: {len(frames)} frames")
-            runs = alternate(commands_for(frames, Path(tmp), peer), args.repeats, Path(tmp), log)
+            cmds = commands_for(frames, Path(tmp), peer, baseline=args.baseline)
+            runs = alternate(cmds, args.repeats, Path(tmp), log)
             results[name] = {"frames": len(frames), "runs": runs, **summarise(runs)}
     lines = [
         "# flexdof vs focus-stack vs decoding alone (whole processes)",
@@ -267,6 +282,7 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
         "flexdof/decode peak_rss_mib": "",
     }
     order = [*targets, "flexdof/focus-stack cpu_s", "flexdof/decode cpu_s"]
+    order += [f"flexdof/flexdof@base {key}" for key in ("wall_s", "cpu_s", "peak_rss_mib")]
     for name, res in results.items():
         for key in (k for k in order if k in res["ratios"]):
             r = res["ratios"][key]
@@ -351,6 +367,12 @@ def main() -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--out", type=Path, default=DEFAULT_OUT)
     parser.add_argument("--scaling", action="store_true", help="frame-count / size scaling")
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        help="another flexdof checkout (e.g. `git worktree add ../base COMMIT`) run in the "
+        "same rounds as 'flexdof@base', for before/after ratios",
+    )
     args = parser.parse_args()
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
