@@ -146,12 +146,42 @@ def alternate(cmds: dict[str, list[str]], repeats: int, cwd: Path, log) -> dict[
         for name in order:
             m = run_process(cmds[name], cwd)
             m["round"] = r
+            m.update(stages_of(cmds[name]))
             runs[name].append(m)
             log(
                 f"  round {r + 1}/{repeats} {name:<12} {m['wall_s']:7.2f} s "
                 f"{m['peak_rss_mib']:7.0f} MiB {m['cpu_s']:6.2f} s CPU"
             )
     return runs
+
+
+def stages_of(cmd: list[str]) -> dict:
+    """flexdof's own stage timings (its sidecar ``OUT.json``), for the profile table."""
+    if "-o" not in cmd:
+        return {}
+    sidecar = Path(cmd[cmd.index("-o") + 1] + ".json")
+    if not sidecar.is_file():
+        return {}
+    return {"stages_s": json.loads(sidecar.read_text()).get("timings_s", {})}
+
+
+def stage_table(results: dict) -> list[str]:
+    """Median stage times (s, from the sidecars) of each flexdof command, per stack."""
+    lines = ["", "Stages (median s, from each run's sidecar; `read` is summed over threads):", ""]
+    header = None
+    for name, res in results.items():
+        for cmd, runs in res["runs"].items():
+            stages = [m["stages_s"] for m in runs if m.get("stages_s")]
+            if not stages:
+                continue
+            keys = list(stages[0])
+            if header is None:
+                header = keys
+                lines += [f"| stack | command | {' | '.join(keys)} |"]
+                lines += ["|---" * (len(keys) + 2) + "|"]
+            row = [statistics.median(s.get(k, float("nan")) for s in stages) for k in header]
+            lines.append(f"| {name} | {cmd} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
+    return lines if header else []
 
 
 def summary(values: list[float]) -> dict:
@@ -290,6 +320,7 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
                 f"| {name} | {key} | {fmt(r['paired'])} | {r['of_medians']:.2f} | "
                 f"{targets.get(key, '')} |"
             )
+    lines += stage_table(results)
     return results, "\n".join(lines)
 
 
