@@ -173,23 +173,7 @@ def _psnr(a, truth) -> float:
     return float(10 * np.log10(1.0 / np.mean((np.asarray(a, float) - truth) ** 2)))
 
 
-@pytest.mark.parametrize(
-    "method",
-    [
-        pytest.param(
-            "wiener",
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="bug: with a 201 px pillbox on a 256 px frame (noise 0.01) Wiener's "
-                "output is 2.4 dB worse than its input over the frame (12.6 vs 15.0 dB; equal "
-                "in the centre): the frame's border is damaged, which an MMSE filter with a "
-                "fitted prior should never do",
-            ),
-        ),
-        "rl",
-        "sparse",
-    ],
-)
+@pytest.mark.parametrize("method", ["wiener", "rl", "sparse"])
 def test_huge_kernel_restoration_is_no_worse_than_its_input(huge_case, method):
     """The old check (finite, |out| < 10) holds for any output; this one does not."""
     truth, k, y = huge_case

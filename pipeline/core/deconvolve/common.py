@@ -108,7 +108,13 @@ def _valid_mask(y: np.ndarray, saturation: float | None, censored=None) -> np.nd
     return valid
 
 
+SPECTRAL_CROP_PX = 1024  # side of the centre crop the spectral noise bound looks at
+SPECTRAL_BAND = 0.3  # cycles/px: the bound reads the spectrum's high band only
+
+
 def _noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
+    """The lower of two upper bounds on the white-noise level (see
+    :func:`estimate_noise_sigma`)."""
     rows, cols = (y.shape[0] // 2) * 2, (y.shape[1] // 2) * 2
     if rows == 0 or cols == 0:
         return 0.0
@@ -119,7 +125,27 @@ def _noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
     ok = v[0::2, 0::2] & v[0::2, 1::2] & v[1::2, 0::2] & v[1::2, 1::2]
     if not ok.any():
         return 0.0
-    return float(np.median(np.abs(hh[ok])) / _MAD_TO_SIGMA)
+    haar = float(np.median(np.abs(hh[ok])) / _MAD_TO_SIGMA)
+    return min(haar, _spectral_noise_bound(y, valid))
+
+
+def _spectral_noise_bound(y: np.ndarray, valid: np.ndarray) -> float:
+    """``sqrt(median |Y(w)|^2 / N / ln 2)`` over the high band of a fully valid centre crop.
+
+    White noise of std ``sigma`` has, at every frequency, ``|Y(w)|^2 / N`` exponentially
+    distributed with mean ``sigma^2`` (median ``sigma^2 ln 2``); any image content adds
+    to it. Returns ``inf`` (no bound) when the crop holds clipped/censored pixels (flat
+    clipped areas would lower the band's power) or is too small to have a band.
+    """
+    r0 = max(0, (y.shape[0] - SPECTRAL_CROP_PX) // 2)
+    c0 = max(0, (y.shape[1] - SPECTRAL_CROP_PX) // 2)
+    crop = (slice(r0, r0 + SPECTRAL_CROP_PX), slice(c0, c0 + SPECTRAL_CROP_PX))
+    if min(y[crop].shape) < 8 or not valid[crop].all():
+        return float("inf")
+    q = y[crop].astype(np.float64)
+    power = np.abs(sfft.rfft2(q - q.mean(), workers=_WORKERS)) ** 2 / q.size
+    radius = np.hypot(sfft.fftfreq(q.shape[0])[:, None], sfft.rfftfreq(q.shape[1])[None, :])
+    return float(np.sqrt(np.median(power[radius > SPECTRAL_BAND]) / np.log(2)))
 
 
 def estimate_noise_sigma(image, *, saturation=None):
@@ -129,6 +155,12 @@ def estimate_noise_sigma(image, *, saturation=None):
     (2x2 blocks ``(a - b - c + d) / 2``); an orthonormal band keeps white-noise
     variance, and the median ignores the few large coefficients of edges. Blocks
     touching pixels ``>= saturation`` are excluded.
+
+    Pixel-scale texture also lives in that band (a checkerboard's HH coefficients are
+    all large: read as noise of std 1.2 on a 0.1/0.9 board), so the result is the
+    lower of it and a second bound, from the high band of the power spectrum:
+    white noise spreads evenly over all frequencies, a texture concentrates in a few,
+    and both bounds are only raised by image content, never lowered.
 
     Parameters
     ----------
