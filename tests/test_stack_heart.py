@@ -16,6 +16,7 @@ import pytest
 from pipeline.core import optics
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import focal_stack_psf, positions_from_scales, stack_kernel
+from pipeline.errors import InputError
 from pipeline.io.read import read_frame
 from pipeline.io.write import write_image
 from pipeline.parallel.accumulate import SATURATION, weighted_sum_graph
@@ -284,7 +285,67 @@ def test_wiener_options_keep_the_kernel_variance_only_for_a_large_spread(mix, ke
     assert wiener_options(kernel)["kernel_samples"] is None
 
 
-def test_positions_with_a_repeated_scale_are_not_monotone():
-    s = np.array([1.0, 1.0, 1.0, 1.012, 1.0])  # steps >= 0 but not > 0; |r| < 0.97
+@pytest.mark.parametrize(
+    "s",
+    [
+        np.array([1.0, 1.0, 1.0, 1.012, 1.0]),
+        np.array([1.0, 1.0001, 1.0001, 1.0002, 1.01]),  # steps >= 0 with a repeat; |r| < 0.97
+        np.array([1.0, 1.0001, 1.0001, 1.0002, 1.01])[::-1],  # steps <= 0 with a repeat
+    ],
+)
+def test_positions_with_a_repeated_scale_are_not_monotone(s):
     assert abs(np.corrcoef(s, np.arange(s.size))[0, 1]) < 0.97
     assert positions_from_scales(s)[1] == "frame-order"
+
+
+# ----------------------------------------------------------------------------- mutation kills
+@pytest.mark.parametrize("direction", [1, -1])
+def test_monotone_scales_are_used_even_when_far_from_a_line(direction):
+    """Steady in one direction but bunched (correlation 0.75): the monotone test decides."""
+    s = np.array([1.0, 1.0001, 1.0002, 1.0003, 1.01])[::direction]
+    assert abs(np.corrcoef(s, np.arange(s.size))[0, 1]) < 0.97
+    assert positions_from_scales(s)[1] == "magnification"
+
+
+@pytest.mark.parametrize("bad", [-0.5, np.nan])
+def test_focal_stack_psf_refuses_a_negative_or_missing_blur(bad):
+    with pytest.raises(InputError, match="negative or non-finite"):
+        focal_stack_psf([0.0, 1.0], [0.5, 0.5], lambda p, x: np.array([3.0, bad]))
+
+
+def test_focal_stack_psf_gaussian_default_is_eq4_with_g_one():
+    """The default g is 1 (Eq. 4's Gaussian of std g b / 2), not 2 or 0."""
+    def blur(p, x):
+        return 6.0 * np.abs(p - x)
+
+    args = ([0.0, 0.5, 1.0], [0.25, 0.5, 0.25], blur)
+    default, _ = focal_stack_psf(*args, model="gaussian")
+    one, _ = focal_stack_psf(*args, model="gaussian", gaussian_g=1.0)
+    two, _ = focal_stack_psf(*args, model="gaussian", gaussian_g=2.0)
+    np.testing.assert_array_equal(default, one)
+    assert default.shape != two.shape or np.abs(default - two).sum() > 0.05
+
+
+def test_relative_positions_in_any_unit_span_the_blur(lens):
+    """Scales (a 4% range, not frame numbers): the far ends are still D apart in blur."""
+    x = np.linspace(0.98, 1.02, 5)
+    w = np.full(5, 0.2)
+    kernel, _, summary = stack_kernel(x, w, lens=lens, absolute=False, blur_span_px=20.0)
+    assert summary["blur_span_px"] == 20.0 and "dissimilarity" not in summary  # no Eq. 6
+    ref, _ = brute_focal_stack(x, w, lambda pi, s: 20.0 * np.abs(pi - s) / 0.04,
+                               np.linspace(0.98, 1.02, 33), kernel.shape[0] // 2)
+    assert np.abs(kernel - ref).sum() < 0.01
+
+
+def test_absolute_positions_without_a_lens_use_the_blur_span():
+    kernel, _, summary = stack_kernel(np.array([12.6, 12.7, 12.8]), np.full(3, 1 / 3),
+                                      lens=None, absolute=True, blur_span_px=6.0)
+    assert summary["blur_span_px"] == 6.0 and summary["source"] == "stack-average"
+    assert kernel.shape[0] >= 7
+
+
+def test_one_focus_position_gives_a_point_kernel():
+    kernel, _, _ = stack_kernel(np.full(3, 5.0), np.full(3, 1 / 3), lens=None, absolute=False,
+                                blur_span_px=10.0)
+    c = kernel.shape[0] // 2
+    assert kernel[c, c] == pytest.approx(1.0)
