@@ -77,6 +77,12 @@ _TETHER_FULL = ["tests/test_tether_ptp.py", "tests/test_tether_replay.py",
                 "tests/test_tether_layouts.py", "tests/test_tether_bodies.py", _D, _E, _K]
 MODULES.update({
     "workflow/ledger.py": [
+        *(f"{_W}::{t}" for t in (
+            "test_ledger_opens_schema_1_files_and_refuses_other_schemas_and_non_sqlite",
+            "test_ledger_round_trips_runs_stacks_and_attempts",
+            "test_a_transaction_that_raises_is_rolled_back",
+            "test_hash_cache_answers_while_size_mtime_and_inode_match",
+            "test_run_lock_file_names_the_holder_and_is_emptied_on_release")),
         f"{_K}::test_a_run_with_failures_is_recorded_failed",
         f"{_K}::test_hash_cache_sees_a_same_size_edit",
         f"{_W}::test_changes_reprocess_affected_stacks_only",
