@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 import tomllib
 
@@ -215,6 +216,16 @@ def test_device_info_bytes_by_hand():
     assert DeviceInfo.from_bytes(expected) == info
     with pytest.raises(ProtocolError, match="DeviceInfo dataset truncated"):
         DeviceInfo.from_bytes(expected[:-1])
+
+
+def test_containers_and_datasets_are_immutable_values():
+    values = [Container(ContainerType.COMMAND, 0x1001, 1, (1,)),
+              DeviceInfo(vendor_extension_id=0xB, manufacturer="M", model="X", operations=()),
+              ObjectInfo(1, "A.JPG")]
+    for value in values:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            value.code = 2
+    assert len(set(values)) == 3  # hashable: usable as keys
 
 
 def test_object_info_leaves_unset_fields_zero_and_needs_its_file_name():
