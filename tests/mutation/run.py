@@ -64,6 +64,11 @@ _TETHER_FAST = [
     "tests/test_tether_ptp.py", "tests/test_tether_replay.py", "tests/test_tether_layouts.py",
     f"{_K}::test_busy_retries_back_off_exponentially_to_the_cap",
     f"{_K}::test_busy_through_every_retry_gives_up_after_the_last",
+    *(f"{_E}::{t}" for t in (
+        "test_open_closes_a_stale_session_and_transaction_ids_restart",
+        "test_session_vendor_comes_from_the_extension_id_before_the_usb_vendor",
+        "test_supports_and_require_name_what_is_missing",
+        "test_failures_raise_with_the_response_and_busy_can_be_returned_at_once")),
     f"{_E}::test_downloads_with_zlp_on_both_directions", f"{_E}::test_busy_responses_are_retried",
     f"{_E}::test_timeout_cancels_and_session_stays_usable",
     f"{_E}::test_unsupported_camera_names_missing_operations",
@@ -115,6 +120,8 @@ MODULES.update({
     "tether/ptp.py": _TETHER_FAST,
     "tether/session.py": _TETHER_FAST,
     "core/deconvolve/rl.py": [
+        "tests/test_deconvolve.py::test_damped_rl_limits_are_plain_rl_and_no_update",
+        "tests/test_deconvolve.py::test_rl_transfer_is_the_iterated_landweber_step",
         "tests/test_deconvolve.py::test_bad_method_and_options_rejected",
         *(f"tests/test_deconvolve.py::{t}[{p}rl]" for t, ps in (
             ("test_delta_kernel_returns_input", ("1-", "5-")),
