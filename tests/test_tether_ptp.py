@@ -149,6 +149,8 @@ def test_headers_and_parameter_bytes_are_validated():
         assert container_length(struct.pack("<IHHI", 16, ctype, 0x1001, 1)) == 16
     five = struct.pack("<IHHI5I", 32, 3, 0x2001, 7, 1, 2, 3, 4, 5)
     assert decode_container(five) == Container(ContainerType.RESPONSE, 0x2001, 7, (1, 2, 3, 4, 5))
+    with pytest.raises(ProtocolError, match="announces 32 bytes but 33 arrived"):
+        decode_container(five + b"\x00")
     with pytest.raises(ProtocolError, match="RESPONSE container has 24 parameter bytes"):
         decode_container(struct.pack("<IHHI6I", 36, 3, 0x2001, 7, 1, 2, 3, 4, 5, 6))
     with pytest.raises(ProtocolError, match="COMMAND container has 3 parameter bytes"):
@@ -162,6 +164,7 @@ def test_transfer_split_and_read_sizes_by_hand():
     assert split_transfers(bytes(1024), 512, 512) == [bytes(512), bytes(512), b""]
     assert split_transfers(bytes(1024), 512, 2048) == [bytes(1024), b""]
     assert split_transfers(bytes(100), 64, 128) == [bytes(100)]
+    assert split_transfers(b"abc", 1, 1) == [b"a", b"b", b"c", b""]  # 1-byte packets: valid
     for packet, most in ((0, 512), (512, 0), (-512, -512), (512, 768)):
         with pytest.raises(ValueError, match="positive multiple"):
             split_transfers(bytes(10), packet, most)
@@ -188,6 +191,7 @@ def test_dataset_reader_and_strings_by_hand():
     assert pack_string("") == b"\x00"
     assert pack_string("AB") == b"\x03A\x00B\x00\x00\x00"
     assert pack_string("x" * 254)[0] == 255 and len(pack_string("x" * 254)) == 511
+    assert Reader(pack_string("y" * 254), "X").string() == "y" * 254  # the longest string
     with pytest.raises(ValueError, match="at most 254"):
         pack_string("x" * 255)
     assert pack_array("H", [1, 2]) == b"\x02\x00\x00\x00\x01\x00\x02\x00"
@@ -216,6 +220,13 @@ def test_device_info_bytes_by_hand():
     assert DeviceInfo.from_bytes(expected) == info
     with pytest.raises(ProtocolError, match="DeviceInfo dataset truncated"):
         DeviceInfo.from_bytes(expected[:-1])
+
+
+def test_device_info_defaults_are_ptp_1_00_with_no_extension_text():
+    blob = DeviceInfo(vendor_extension_id=0xB, manufacturer="", model="", operations=()).to_bytes()
+    # StandardVersion u16 = 100 (PTP 1.00), extension id u32, extension version u16 = 100,
+    # empty extension description (one 0 byte), FunctionalMode u16 = 0 (standard mode)
+    assert blob[:11] == struct.pack("<HIH", 100, 0xB, 100) + b"\x00" + struct.pack("<H", 0)
 
 
 def test_containers_and_datasets_are_immutable_values():
