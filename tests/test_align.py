@@ -477,3 +477,44 @@ def test_similarity_projection_keeps_the_image_centre():
     a, b = sim[0, 0], sim[1, 0]
     np.testing.assert_allclose(sim[:2, :2], [[a, -b], [b, a]])
     assert a == pytest.approx((1.05 + 0.97) / 2) and b == pytest.approx((-0.01 - 0.02) / 2)
+
+
+def test_implausible_transforms_and_their_boundaries():
+    from pipeline.core.align import _implausible
+
+    shape = (480, 640)
+    assert _implausible(np.eye(3), shape) == ""
+    assert "non-finite" in _implausible(np.full((3, 3), np.nan), shape)
+    assert "mirroring" in _implausible(np.diag([-1.0, 1.0, 1.0]), shape)
+    assert "mirroring" in _implausible(np.diag([1.0, 0.0, 1.0]), shape)
+    # the linear scale sqrt(det) must lie in 0.5 .. 2.0, both ends included
+    for s, ok in ((0.5, True), (2.0, True), (0.499, False), (2.001, False)):
+        assert (_implausible(np.diag([s, s, 1.0]), shape) == "") is ok, s
+        assert (_implausible(3.0 * np.diag([s, s, 1.0]), shape) == "") is ok  # h[2, 2] != 1
+    assert "scale 0.400" in _implausible(np.diag([0.4, 0.4, 1.0]), shape)
+    # |w - 1| <= 0.05 at the four corners (x = 0 .. cols - 1, y = 0 .. rows - 1), by hand
+    for axis, far in ((0, 639), (1, 479)):
+        for sign in (1.0, -1.0):
+            for w, ok in ((0.04999, True), (0.05005, False)):  # 1/600 apart: one pixel
+                h = np.eye(3)
+                h[2, axis] = sign * w / far
+                assert (_implausible(h, shape) == "") is ok, (axis, sign, w)
+
+
+def test_estimate_alignment_validates_its_options():
+    a = np.zeros((100, 200), np.float32)
+    flat = [a, a + 1.0]
+    assert len(estimate_alignment(flat, max_side_px=192)) == 2  # the smallest allowed
+    for bad in (191, 192.0, "768"):
+        with pytest.raises(InputError, match="max_side_px must be an int >= 192"):
+            estimate_alignment(flat, max_side_px=bad)
+    with pytest.raises(InputError, match="method must be one of"):
+        estimate_alignment(flat, method="sift")
+    with pytest.raises(InputError, match=r"reference must be a frame index in 0..1, got -1"):
+        estimate_alignment(flat, reference=-1)
+    with pytest.raises(InputError, match=r"fallback must have one Alignment per frame \(2\)"):
+        estimate_alignment(flat, fallback=analytic_alignment([1.0], (100, 200)))
+    al = estimate_alignment(flat, reference=np.int64(0))
+    assert al[0].method == "reference" and not al[1].ok  # textureless: the anchor's transform
+    np.testing.assert_array_equal(al[1].homography, np.eye(3))
+    assert al[1].scale == 1.0 and al[1].correlation is None and "no texture" in al[1].message

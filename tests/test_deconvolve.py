@@ -260,3 +260,42 @@ def test_kernel_variance_equals_direct_spectral_variance():
 def test_kernel_samples_shape_is_checked():
     with pytest.raises(InputError, match="kernel_samples"):
         dc.kernel_variance(np.ones((3, 5, 5)), np.ones((7, 7)))
+
+
+# ----------------------------------------------------------------------------- Richardson-Lucy
+def _rl_case(seed=11):
+    rng = np.random.default_rng(seed)
+    x = ndimage.gaussian_filter(rng.uniform(0.2, 1.0, (40, 44)), 1.5)
+    k = np.zeros((5, 7))
+    k[2, 1:] = [0.1, 0.15, 0.2, 0.25, 0.2, 0.1]  # one-sided: the adjoint must be flipped
+    y = blur(x, k) + rng.normal(0.0, 0.01, x.shape)
+    return y, k / k.sum()
+
+
+def test_damped_rl_limits_are_plain_rl_and_no_update():
+    """White (1994): residuals far above ``damping * sigma`` update as plain RL does, residuals
+    far below it not at all (the estimate stays the data)."""
+    y, k = _rl_case()
+    plain = dc.richardson_lucy(y, k, iterations=6, noise_sigma=0.01)
+    sharp = dc.richardson_lucy(y, k, iterations=6, noise_sigma=0.01, damping=1e-9)
+    np.testing.assert_allclose(sharp, plain, rtol=1e-9, atol=1e-12)
+    assert np.abs(plain - y).max() > 0.05  # plain RL did change the frame
+    frozen = dc.richardson_lucy(y, k, iterations=6, noise_sigma=0.01, damping=1e9)
+    np.testing.assert_allclose(frozen, y, rtol=1e-12, atol=1e-12)
+    for bad in (0.0, -1.0):
+        with pytest.raises(InputError, match="damping"):
+            dc.richardson_lucy(y, k, damping=bad)
+
+
+def test_rl_transfer_is_the_iterated_landweber_step():
+    """The closed form against ``n`` explicit steps ``X <- X + conj(K) (Y - K X)``, ``X0 = Y``."""
+    from pipeline.core.deconvolve.rl import _rl_transfer
+
+    rng = np.random.default_rng(12)
+    k_fft = rng.uniform(0.0, 1.0, 200) * np.exp(1j * rng.uniform(-np.pi, np.pi, 200))
+    k_fft[:3] = [0.0, 1e-7, 1.0]  # a spectral zero, a near zero (the series branch), no blur
+    for n in (0, 1, 7, 30):
+        x = np.ones_like(k_fft)
+        for _ in range(n):
+            x = x + np.conj(k_fft) * (1.0 - k_fft * x)
+        np.testing.assert_allclose(_rl_transfer(n)(k_fft, None), x, rtol=1e-9, atol=1e-12)

@@ -17,7 +17,7 @@ from pipeline.errors import InputError, TetherError
 from pipeline.io.profiles import lens_to_toml, load_lens
 from pipeline.io.read import read_frame
 from pipeline.tether.base import CapturedObject, EndStop
-from pipeline.tether.codes import OC, CanonOC, NikonOC
+from pipeline.tether.codes import OC, RC, CanonOC, NikonOC
 from pipeline.tether.emulated.device import (
     EmulatedBackend,
     EmulatedCamera,
@@ -28,8 +28,14 @@ from pipeline.tether.emulated.device import (
 from pipeline.tether.emulated.personalities import CANON, EOS_SWEEP, NIKON
 from pipeline.tether.emulated.scene import UM_PER_STEP
 from pipeline.tether.flows import StackPlan, capture_stack, capture_sweep, connect
-from pipeline.tether.session import UnsupportedCamera
-from pipeline.tether.transport import MAX_TRANSFER, DeviceGone, EndpointStalled, TransportTimeout
+from pipeline.tether.session import CameraBusy, PtpError, PtpSession, UnsupportedCamera
+from pipeline.tether.transport import (
+    MAX_TRANSFER,
+    DeviceGone,
+    EndpointStalled,
+    TransportTimeout,
+    UsbTransport,
+)
 
 
 def _stack(cam, out, plan, **kw):
@@ -305,3 +311,81 @@ def test_tether_commands_speak_the_cli_vocabulary(tmp_path, capsys):
     listed = json.loads(capsys.readouterr().out)
     assert [c["vendor"] for c in listed["cameras"]] == ["nikon"]
     assert listed["cameras"][0]["stack"] is True and listed["cameras"][0]["sweep"] is False
+
+
+# --- PtpSession on its own, over pyusb and the emulator ----------------------------------------
+
+
+def _raw_session(cam, **options) -> PtpSession:
+    backend = EmulatedBackend(cam)
+    return PtpSession(UsbTransport(usb.core.find(backend=backend)), clock=backend.clock,
+                      **options)
+
+
+def _ops(cam) -> list[tuple[int, int]]:
+    return [(tid, op) for tid, op, _params in cam.transactions]
+
+
+def test_open_closes_a_stale_session_and_transaction_ids_restart():
+    cam = EmulatedCamera(CANON)
+    cam.session_open = True  # left open by a host that died
+    session = _raw_session(cam)
+    info = session.open()
+    assert (info.model, session.vendor, session.is_open) == (CANON.model, "canon", True)
+    # outside a session GetDeviceInfo and OpenSession use transaction id 0 (ISO 15740 9.3.1)
+    assert _ops(cam) == [(0, OC.GetDeviceInfo), (0, OC.OpenSession), (1, OC.CloseSession),
+                         (0, OC.OpenSession)]
+    session.transaction(OC.GetDeviceInfo, want_data=True)
+    session.transaction(OC.GetDeviceInfo, want_data=True)
+    assert _ops(cam)[4:] == [(1, OC.GetDeviceInfo), (2, OC.GetDeviceInfo)]
+    session._tid = 0xFFFFFFFD  # ids run 1 .. 0xFFFFFFFE; 0xFFFFFFFF is reserved
+    session.transaction(OC.GetDeviceInfo, want_data=True)
+    session.transaction(OC.GetDeviceInfo, want_data=True)
+    assert [tid for tid, _op in _ops(cam)[6:]] == [0xFFFFFFFE, 1]
+    session.close()
+    assert not cam.session_open and _ops(cam)[-1] == (2, OC.CloseSession)
+    session.close()  # twice: no second CloseSession
+    assert len(cam.transactions) == 9
+
+
+def test_session_vendor_comes_from_the_extension_id_before_the_usb_vendor():
+    # a Canon USB id (0x04A9) with Nikon's PTP extension id (0xA): the extension id decides
+    session = _raw_session(EmulatedCamera(CANON.but(vendor_extension_id=0xA)))
+    session.open()
+    assert session.vendor == "nikon"
+    session = _raw_session(EmulatedCamera(CANON))  # extension id 6 (MTP): the USB id decides
+    session.open()
+    assert session.vendor == "canon"
+
+
+def test_supports_and_require_name_what_is_missing():
+    ops = tuple(op for op in CANON.operations if op not in (CanonOC.DriveLens, CanonOC.GetEvent))
+    session = _raw_session(EmulatedCamera(CANON.but(operations=ops, model="Old EOS")))
+    assert not session.supports(OC.GetDeviceInfo)  # nothing known before GetDeviceInfo
+    session.open()
+    assert session.supports(OC.GetDeviceInfo) and not session.supports(CanonOC.DriveLens)
+    with pytest.raises(UnsupportedCamera, match=r"^Old EOS cannot focus: it lacks DriveLens "
+                                                r"\(0x9155\), GetEvent \(0x9116\)$"):
+        session.require([OC.GetDeviceInfo, CanonOC.DriveLens, CanonOC.GetEvent], "focus")
+    session.extra_operations |= {CanonOC.DriveLens, CanonOC.GetEvent}
+    session.require([CanonOC.DriveLens, CanonOC.GetEvent], "focus")  # hidden but known
+    assert session.supports(CanonOC.DriveLens)
+    session.require([], "do nothing")
+
+
+def test_failures_raise_with_the_response_and_busy_can_be_returned_at_once():
+    cam = EmulatedCamera(CANON, faults=Faults(busy_responses=1))
+    session = _raw_session(cam)
+    session.open()
+    cam.faults.busy_ops = frozenset({CanonOC.SetRemoteMode})
+    response = session.transaction(CanonOC.SetRemoteMode, (1,), check=False, busy_ok=False)
+    assert response.code == RC.DeviceBusy and session.retried == 0  # no retry, no wait
+    cam.faults.error_on[CanonOC.SetRemoteMode] = RC.GeneralError
+    with pytest.raises(PtpError, match=r"^SetRemoteMode \(0x9114\) failed: GeneralError "
+                                       r"\(0x2002\)$") as err:
+        session.transaction(CanonOC.SetRemoteMode, (1,))
+    assert err.type is PtpError and err.value.code == RC.GeneralError
+    cam.faults.busy_responses = 3
+    with pytest.raises(CameraBusy, match=r"DeviceBusy \(0x2019\) after 2 retries$") as err:
+        _raw_session(cam, retries=2).transaction(CanonOC.SetRemoteMode, (1,))
+    assert err.value.code == RC.DeviceBusy

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import struct
 import tomllib
 
@@ -17,8 +18,13 @@ from pipeline.tether.ptp import (
     DeviceInfo,
     ObjectInfo,
     ProtocolError,
+    Reader,
+    container_length,
     decode_container,
     encode_container,
+    iter_chunks,
+    pack_array,
+    pack_string,
     read_sizes,
     split_transfers,
 )
@@ -114,3 +120,133 @@ def test_stack_toml_text_parses():
                     "frames": [{"file": "a.jpg", "focus_step": 0},
                                {"file": "b.jpg", "focus_step": -12}]}
     assert "partial" not in tomllib.loads(stack_toml_text("l", [("a", 1)]))
+
+
+# --- the codec's rules against hand-built bytes ------------------------------------------------
+
+
+def test_containers_carry_at_most_five_parameters_or_else_a_payload():
+    assert Container(ContainerType.RESPONSE, 0x2001, 1, (1, 2, 3, 4, 5)).params == (1, 2, 3, 4, 5)
+    with pytest.raises(ProtocolError, match="at most 5 parameters"):
+        Container(ContainerType.COMMAND, 0x1001, 1, (1, 2, 3, 4, 5, 6))
+    with pytest.raises(ProtocolError, match="payload, not parameters"):
+        Container(ContainerType.DATA, 0x1001, 1, (1,))
+    for ctype in (ContainerType.COMMAND, ContainerType.RESPONSE, ContainerType.EVENT):
+        with pytest.raises(ProtocolError, match=f"not {ctype.name}"):
+            Container(ctype, 0x1001, 1, payload=b"x")
+
+
+def test_headers_and_parameter_bytes_are_validated():
+    with pytest.raises(ProtocolError, match="12-byte header: 11 bytes"):
+        container_length(bytes(11))
+    assert container_length(struct.pack("<IHHI", 12, 3, 0x2001, 1) + b"...") == 12
+    with pytest.raises(ProtocolError, match="length 11, type 3"):
+        container_length(struct.pack("<IHHI", 11, 3, 0x2001, 1))
+    for ctype in (0, 5):
+        with pytest.raises(ProtocolError, match=f"type {ctype} "):
+            container_length(struct.pack("<IHHI", 12, ctype, 0x2001, 1))
+    for ctype in (1, 2, 3, 4):
+        assert container_length(struct.pack("<IHHI", 16, ctype, 0x1001, 1)) == 16
+    five = struct.pack("<IHHI5I", 32, 3, 0x2001, 7, 1, 2, 3, 4, 5)
+    assert decode_container(five) == Container(ContainerType.RESPONSE, 0x2001, 7, (1, 2, 3, 4, 5))
+    with pytest.raises(ProtocolError, match="announces 32 bytes but 33 arrived"):
+        decode_container(five + b"\x00")
+    with pytest.raises(ProtocolError, match="RESPONSE container has 24 parameter bytes"):
+        decode_container(struct.pack("<IHHI6I", 36, 3, 0x2001, 7, 1, 2, 3, 4, 5, 6))
+    with pytest.raises(ProtocolError, match="COMMAND container has 3 parameter bytes"):
+        decode_container(struct.pack("<IHHI", 15, 1, 0x1001, 7) + b"abc")
+    data = decode_container(struct.pack("<IHHI", 36, 2, 0x1009, 7) + bytes(range(24)))
+    assert data.payload == bytes(range(24)) and data.params == ()  # no limit on a payload
+
+
+def test_transfer_split_and_read_sizes_by_hand():
+    assert split_transfers(bytes(1000), 512, 512) == [bytes(512), bytes(488)]
+    assert split_transfers(bytes(1024), 512, 512) == [bytes(512), bytes(512), b""]
+    assert split_transfers(bytes(1024), 512, 2048) == [bytes(1024), b""]
+    assert split_transfers(bytes(100), 64, 128) == [bytes(100)]
+    assert split_transfers(b"abc", 1, 1) == [b"a", b"b", b"c", b""]  # 1-byte packets: valid
+    for packet, most in ((0, 512), (512, 0), (-512, -512), (512, 768)):
+        with pytest.raises(ValueError, match="positive multiple"):
+            split_transfers(bytes(10), packet, most)
+    assert read_sizes(0, 512, 1024) == []
+    assert read_sizes(1, 512, 1024) == [512]
+    assert read_sizes(512, 512, 1024) == [512]
+    assert read_sizes(1000, 512, 1024) == [1024]
+    assert read_sizes(1025, 512, 1024) == [1024, 512]
+    assert read_sizes(2048, 512, 1024) == [1024, 1024]
+
+
+def test_dataset_reader_and_strings_by_hand():
+    r = Reader(b"\x01\x02\x03", "Thing")
+    assert r.take("B") == 1 and r.take("H") == 0x0302 and r.pos == 3
+    with pytest.raises(ProtocolError, match="Thing dataset truncated at byte 3"):
+        r.take("B")
+    with pytest.raises(ProtocolError, match="truncated at byte 0"):
+        Reader(b"\x01\x00\x00", "X").take("I")
+    assert Reader(b"\x02\x00\x00\x00\x05\x00\x06\x00", "X").array("H") == (5, 6)
+    assert Reader(b"\x00", "X").string() == ""
+    assert Reader(b"\x03A\x00B\x00\x00\x00", "X").string() == "AB"
+    with pytest.raises(ProtocolError, match="inside a string"):
+        Reader(b"\x03A\x00B\x00\x00", "X").string()  # one byte short
+    assert pack_string("") == b"\x00"
+    assert pack_string("AB") == b"\x03A\x00B\x00\x00\x00"
+    assert pack_string("x" * 254)[0] == 255 and len(pack_string("x" * 254)) == 511
+    assert Reader(pack_string("y" * 254), "X").string() == "y" * 254  # the longest string
+    with pytest.raises(ValueError, match="at most 254"):
+        pack_string("x" * 255)
+    assert pack_array("H", [1, 2]) == b"\x02\x00\x00\x00\x01\x00\x02\x00"
+    assert pack_array("I", []) == b"\x00\x00\x00\x00"
+    assert list(iter_chunks(10, 4)) == [(0, 4), (4, 4), (8, 2)]
+    assert list(iter_chunks(8, 4)) == [(0, 4), (4, 4)] and list(iter_chunks(0, 4)) == []
+
+
+def test_device_info_bytes_by_hand():
+    info = DeviceInfo(vendor_extension_id=0xB, manufacturer="M", model="X", operations=(0x1001,),
+                      events=(0x4002,), properties=(0x5001, 0x5003), standard_version=110,
+                      vendor_extension_version=120, vendor_extension_desc="d",
+                      functional_mode=1, capture_formats=(0x3801,), image_formats=(0x3000,),
+                      device_version="2", serial_number="S")
+
+    def s(c):
+        return b"\x02" + c.encode("utf-16-le") + b"\x00\x00"
+
+    def arr(*v):
+        return struct.pack(f"<I{len(v)}H", len(v), *v)
+
+    expected = (struct.pack("<HIH", 110, 0xB, 120) + s("d") + struct.pack("<H", 1)
+                + arr(0x1001) + arr(0x4002) + arr(0x5001, 0x5003) + arr(0x3801) + arr(0x3000)
+                + s("M") + s("X") + s("2") + s("S"))
+    assert info.to_bytes() == expected
+    assert DeviceInfo.from_bytes(expected) == info
+    with pytest.raises(ProtocolError, match="DeviceInfo dataset truncated"):
+        DeviceInfo.from_bytes(expected[:-1])
+
+
+def test_device_info_defaults_are_ptp_1_00_with_no_extension_text():
+    blob = DeviceInfo(vendor_extension_id=0xB, manufacturer="", model="", operations=()).to_bytes()
+    # StandardVersion u16 = 100 (PTP 1.00), extension id u32, extension version u16 = 100,
+    # empty extension description (one 0 byte), FunctionalMode u16 = 0 (standard mode)
+    assert blob[:11] == struct.pack("<HIH", 100, 0xB, 100) + b"\x00" + struct.pack("<H", 0)
+
+
+def test_containers_and_datasets_are_immutable_values():
+    values = [Container(ContainerType.COMMAND, 0x1001, 1, (1,)),
+              DeviceInfo(vendor_extension_id=0xB, manufacturer="M", model="X", operations=()),
+              ObjectInfo(1, "A.JPG")]
+    for value in values:
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            value.code = 2
+    assert len(set(values)) == 3  # hashable: usable as keys
+
+
+def test_object_info_leaves_unset_fields_zero_and_needs_its_file_name():
+    blob = ObjectInfo(1234, "IMG.JPG").to_bytes()
+    # ISO 15740 5.5.2: format u16 at 4, compressed size u32 at 8; every other field of the
+    # 52-byte head (storage, protection, thumbnail, image size/depth, parent, ...) is 0
+    assert blob[4:6] == b"\x01\x38" and blob[8:12] == struct.pack("<I", 1234)
+    assert blob[0:4] + blob[6:8] + blob[12:52] == bytes(46)
+    assert blob[52] == 8 and blob[53:69].decode("utf-16-le") == "IMG.JPG\x00"
+    assert blob[69:] == b"\x00\x00\x00"  # capture date, modification date, keywords: empty
+    assert ObjectInfo.from_bytes(blob[:52] + b"\x00") == ObjectInfo(1234, "")  # empty name
+    with pytest.raises(ProtocolError, match="too short: 52 bytes"):
+        ObjectInfo.from_bytes(blob[:52])

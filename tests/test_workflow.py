@@ -7,6 +7,7 @@ stacks in ../shared/data alongside synthetic ones.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import signal
 import sqlite3
@@ -394,3 +395,103 @@ def test_every_loops_with_the_same_guarantees(small_tree, capsys):
     runs = ledger_rows(small_tree / "out", "SELECT done, skipped, status FROM runs ORDER BY id")
     assert runs == [(2, 0, "ok"), (0, 2, "ok")]
     assert "every 1 s" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------- the ledger itself
+def _hand_made_ledger(path: Path, schema: str) -> Path:
+    """A ledger file as an earlier flexdof left it: only its ``meta`` table matters here."""
+    with sqlite3.connect(path) as db:
+        db.execute("CREATE TABLE meta (key TEXT PRIMARY KEY, value TEXT NOT NULL)")
+        db.execute("INSERT INTO meta VALUES ('schema', ?)", (schema,))
+    return path
+
+
+def test_ledger_opens_schema_1_files_and_refuses_other_schemas_and_non_sqlite(tmp_path):
+    with Ledger(_hand_made_ledger(tmp_path / "v1.sqlite", "1")) as ledger:
+        assert ledger.runs() == [] and ledger.records() == []
+    for schema in ("0", "2"):
+        path = _hand_made_ledger(tmp_path / f"v{schema}.sqlite", schema)
+        with pytest.raises(InputError, match=f"schema {schema}, this flexdof reads 1"):
+            Ledger(path)
+    garbage = tmp_path / "garbage.sqlite"
+    garbage.write_bytes(b"not a database, " * 256)
+    with pytest.raises(InputError, match="cannot open it as SQLite"):
+        Ledger(garbage)
+
+
+def test_ledger_round_trips_runs_stacks_and_attempts(tmp_path):
+    path = tmp_path / LEDGER_NAME
+    with Ledger(path) as ledger:
+        local = ledger.start_run("wf.toml", None)
+        for stack in ("a", "b"):
+            ledger.queue(local, stack, [f"{stack}/1.png", f"{stack}/2.png"], f"{stack}.tif", "fp")
+        ledger.record(local, {"key": "a", "status": "done", "timings": {"read": 1.5},
+                              "seconds": 2.0, "worker": "w1", "output_sha256": "ab"})
+        ledger.record(local, {"key": "b", "status": "failed", "error": "bad frame",
+                              "error_kind": "input"})
+        ledger.finish_run(local, planned=2, skipped=0, done=1, failed=1)
+        remote = ledger.start_run("wf.toml", "tcp://10.0.0.1:8786")
+        ledger.queue(remote, "b", ["b/1.png"], "b.tif", "fp2")
+        ledger.abort_run(remote, planned=1, skipped=1, done=0, failed=0)
+        a, b = ledger.get("a"), ledger.get("b")
+        assert ledger.get("c") is None
+        assert a.timings == {"read": 1.5} and a.inputs == ["a/1.png", "a/2.png"]
+        assert (a.status, a.seconds, a.worker, a.output_sha256) == ("done", 2.0, "w1", "ab")
+        assert (b.status, b.fingerprint, b.inputs, b.timings) == ("interrupted", "fp2",
+                                                                  ["b/1.png"], None)
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            a.status = "queued"  # records are snapshots, never edited in place
+        assert [(r["stack"], r["status"]) for r in ledger.attempts("b")] == [
+            ("b", "failed"), ("b", "interrupted")]
+        assert len(ledger.attempts()) == 3
+    # read back without the Ledger class
+    assert ledger_rows(tmp_path, "SELECT scheduler, status, planned, done, failed FROM runs") == [
+        ("local", "failed", 2, 1, 1), ("tcp://10.0.0.1:8786", "interrupted", 1, 0, 0)]
+    assert ledger_rows(tmp_path, "SELECT stack, timings, error FROM stacks ORDER BY stack") == [
+        ("a", '{"read": 1.5}', None), ("b", None, "bad frame")]
+
+
+def test_a_transaction_that_raises_is_rolled_back(tmp_path):
+    with Ledger(tmp_path / LEDGER_NAME) as ledger:
+        with pytest.raises(KeyboardInterrupt), ledger._transaction():
+            ledger._db.execute("INSERT INTO meta VALUES ('half', 'written')")
+            raise KeyboardInterrupt  # Ctrl-C in the middle of a write
+        run = ledger.start_run("wf.toml", None)  # a new transaction can begin
+        assert [r["id"] for r in ledger.runs()] == [run]
+    assert ledger_rows(tmp_path, "SELECT key FROM meta") == [("schema",)]
+
+
+def test_hash_cache_answers_while_size_mtime_and_inode_match(tmp_path):
+    import hashlib
+
+    path = tmp_path / "frame.bin"
+    path.write_bytes(b"A" * 100)
+    with Ledger(tmp_path / LEDGER_NAME) as ledger:
+        first = ledger.file_sha256(path)
+        stat = path.stat()
+        with open(path, "r+b") as fh:  # same size and inode; the mtime is put back below
+            fh.write(b"B")
+        os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+        assert ledger.file_sha256(path) == first == hashlib.sha256(b"A" * 100).hexdigest()
+
+
+def test_run_lock_file_names_the_holder_and_is_emptied_on_release(tmp_path):
+    import re
+    import socket
+    import stat
+
+    lock_file = tmp_path / "flexdof-ledger.lock"
+    lock_file.write_text("x" * 300)  # a longer text left by an earlier holder
+    holder = f"me, pid {os.getpid()} on {socket.gethostname()}, since "
+    with RunLock(tmp_path, "me"):
+        text = lock_file.read_text()
+        assert re.fullmatch(re.escape(holder) + r"\d{4}-\d\d-\d\d \d\d:\d\d:\d\d", text), text
+        with pytest.raises(Exception, match=re.escape(f"in progress ({holder}")):
+            with RunLock(tmp_path, "other"):  # a second open file: flock refuses it
+                pass
+    assert lock_file.read_bytes() == b""
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    with RunLock(fresh, "me"):
+        pass
+    assert stat.S_IMODE((fresh / lock_file.name).stat().st_mode) & 0o111 == 0  # not executable

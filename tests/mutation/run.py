@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -52,9 +53,111 @@ MODULES: dict[str, list[str]] = {
     "tether/ptp.py": ["tests/test_tether_ptp.py"],
 }
 
+# ---- fast selections (helper mutB): ledger, align, ptp, session, rl --------------------------
+# Pytest node ids ("file::test") or files, cheapest first (``pytest -x`` stops at the first
+# failure); each entry of FULL is the whole covering set, for honest "before" rechecks:
+# ``run.py --full --recheck SESSIONS MODULE`` re-runs survivors against FULL[MODULE].
+_W, _R, _K = "tests/test_workflow.py", "tests/test_workflow_reliability.py", \
+    "tests/test_issue11_kills.py"
+_E, _D = "tests/test_tether_emulated.py", "tests/test_tether_defects.py"
+_TETHER_FAST = [
+    "tests/test_tether_ptp.py", "tests/test_tether_replay.py", "tests/test_tether_layouts.py",
+    f"{_K}::test_busy_retries_back_off_exponentially_to_the_cap",
+    f"{_K}::test_busy_through_every_retry_gives_up_after_the_last",
+    *(f"{_E}::{t}" for t in (
+        "test_open_closes_a_stale_session_and_transaction_ids_restart",
+        "test_session_vendor_comes_from_the_extension_id_before_the_usb_vendor",
+        "test_supports_and_require_name_what_is_missing",
+        "test_failures_raise_with_the_response_and_busy_can_be_returned_at_once")),
+    f"{_E}::test_downloads_with_zlp_on_both_directions", f"{_E}::test_busy_responses_are_retried",
+    f"{_E}::test_timeout_cancels_and_session_stays_usable",
+    f"{_E}::test_unsupported_camera_names_missing_operations",
+    f"{_E}::test_device_reset_closes_the_session_and_it_can_reopen",
+    f"{_E}::test_no_camera_lists_what_was_seen",
+    f"{_E}::test_unplug_mid_stack_keeps_downloaded_frames",
+    f"{_D}::test_d9_containers_on_packet_boundaries",
+    f"{_D}::test_d4_nikon_device_ready_waits_through_a_long_busy_body",
+]
+_TETHER_FULL = ["tests/test_tether_ptp.py", "tests/test_tether_replay.py",
+                "tests/test_tether_layouts.py", "tests/test_tether_bodies.py", _D, _E, _K]
+MODULES.update({
+    "workflow/ledger.py": [
+        *(f"{_W}::{t}" for t in (
+            "test_ledger_opens_schema_1_files_and_refuses_other_schemas_and_non_sqlite",
+            "test_ledger_round_trips_runs_stacks_and_attempts",
+            "test_a_transaction_that_raises_is_rolled_back",
+            "test_hash_cache_answers_while_size_mtime_and_inode_match",
+            "test_run_lock_file_names_the_holder_and_is_emptied_on_release")),
+        f"{_K}::test_a_run_with_failures_is_recorded_failed",
+        f"{_K}::test_hash_cache_sees_a_same_size_edit",
+        f"{_W}::test_changes_reprocess_affected_stacks_only",
+        f"{_W}::test_lock_is_released_by_a_dead_holder",
+        f"{_R}::test_an_interrupted_run_does_not_leave_the_ledger_running",
+        f"{_R}::test_disk_full_failures_are_retried_on_the_next_run",
+        f"{_R}::test_an_output_corrupted_in_place_is_processed_again",
+        f"{_W}::test_bad_stacks_fail_alone_with_clear_errors",
+    ],
+    "core/align.py": [  # no real stacks (4 s): FULL has them
+        *(f"tests/test_align.py::{t}" for t in (
+            "test_homography_round_trip", "test_compose_applies_rightmost_first",
+            "test_scale_of_similarity", "test_invalid_homography",
+            "test_warp_identity_returns_input", "test_warp_matches_bilinear_reference",
+            "test_warp_integer_shift_and_replicated_border", "test_warp_validates",
+            "test_analytic_alignment_scales_about_centre", "test_analytic_alignment_validates",
+            "test_alignment_is_a_plain_record", "test_reduction_geometry_matches_cv2_resize",
+            "test_similarity_projection_keeps_the_image_centre", "test_estimate_validates",
+            "test_implausible_transforms_and_their_boundaries",
+            "test_estimate_alignment_validates_its_options")),
+        f"{_K}::test_strong_perspective_is_implausible",
+        f"{_K}::test_chained_alignment_matches_neighbours",
+        f"{_K}::test_unchained_alignment_matches_the_reference",
+        *(f"tests/test_align.py::{t}" for t in (
+            "test_textureless_uses_given_fallback", "test_noise_frames_do_not_align",
+            "test_lazy_frames_are_loaded_once", "test_single_and_identical_frames",
+            "test_estimate_colour_frames_and_reduction",
+            "test_estimate_direct_and_features_methods",
+            "test_analytic_and_estimated_agree", "test_textureless_frame_falls_back",
+            "test_estimate_synthetic_stack")),
+    ],
+    "tether/ptp.py": _TETHER_FAST,
+    "tether/session.py": _TETHER_FAST,
+    "core/deconvolve/rl.py": [
+        "tests/test_deconvolve.py::test_damped_rl_limits_are_plain_rl_and_no_update",
+        "tests/test_deconvolve.py::test_rl_transfer_is_the_iterated_landweber_step",
+        "tests/test_deconvolve.py::test_bad_method_and_options_rejected",
+        *(f"tests/test_deconvolve.py::{t}[{p}rl]" for t, ps in (
+            ("test_delta_kernel_returns_input", ("1-", "5-")),
+            ("test_constant_image_stays_constant", ("shape0-", "shape1-")),
+            ("test_zero_image_and_zero_pixels", ("",)),
+            ("test_channels_are_independent", ("",)),
+            ("test_saturated_pixels_excluded", ("",)),
+            ("test_zero_noise_and_spectral_zeros_improve", ("",)),
+            ("test_huge_kernel", ("",))) for p in ps),
+        "tests/test_deconvolve.py::test_rl_negative_pixels_keep_nonnegative_output",
+        *(f"tests/test_deconvolve_asymmetric.py::{t}[rl]" for t in (
+            "test_methods_undo_a_one_sided_blur_and_the_flip_does_not",
+            "test_tiles_with_a_one_sided_kernel_equal_the_whole_frame",
+            "test_tiles_honour_the_censored_mask",
+            "test_huge_kernel_restoration_is_no_worse_than_its_input")),
+        "tests/test_references.py::test_deconvolution_does_not_regress_against_its_reference[rl]",
+    ],
+})
+FULL: dict[str, list[str]] = {
+    "workflow/ledger.py": [_W, _R, _K],
+    "core/align.py": ["tests/test_align.py", _K],
+    "tether/ptp.py": _TETHER_FULL,
+    "tether/session.py": _TETHER_FULL,
+    "core/deconvolve/rl.py": DECONVOLVE,
+}
+# the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
+# replay the same hypothesis examples for every mutant
+os.environ.setdefault("FLEXDOF_SHARED_DATA", str(ROOT.parent / "shared" / "data"))
+os.environ.setdefault("HYPOTHESIS_PROFILE", "ci")
+# ---- end of mutB's selections ----------------------------------------------------------------
+
 CONFIG = """[cosmic-ray]
 module-path = "{module}"
-timeout = 60.0
+timeout = {timeout}
 excluded-modules = []
 test-command = "{python} -m pytest -x -q -p no:cacheprovider {tests}"
 
@@ -70,6 +173,7 @@ exclude-operators = [
     "core/ReplaceBinaryOperator_(FloorDiv|Mod|LShift|RShift|BitOr|BitAnd|BitXor|MatMult)_.*",
 ]
 """
+TIMEOUT = 60.0
 
 
 def scratch_copy(dest: Path) -> None:
@@ -81,13 +185,26 @@ def scratch_copy(dest: Path) -> None:
             shutil.copy2(src, dest / item)
 
 
+def present(tests: list[str], root: Path) -> list[str]:
+    """The files and node ids of ``tests`` that exist under ``root`` (an older checkout,
+    scored with --root, may lack tests a selection names; pytest would refuse the run)."""
+    out = []
+    for t in tests:
+        path, _, name = t.partition("::")
+        if (root / path).exists() and (
+            not name or f"def {name.split('[')[0]}(" in (root / path).read_text()
+        ):
+            out.append(t)
+    return out
+
+
 def score(module: str, work: Path, sessions: Path) -> dict:
-    tests = [t for t in MODULES[module] if (work / t).exists()]
+    tests = present(MODULES[module], work)
     name = module.replace("/", "_")
     config = sessions / f"{name}.toml"
     session = sessions / f"{name}.sqlite"
     config.write_text(CONFIG.format(module=f"pipeline/{module}", python=sys.executable,
-                                    tests=" ".join(tests)))
+                                    tests=" ".join(tests), timeout=TIMEOUT))
     run = dict(cwd=work, check=True, capture_output=True, text=True)
     subprocess.run(["cosmic-ray", "init", str(config), str(session)], **run)
     subprocess.run(["cr-filter-operators", str(session), str(config)], **run)
@@ -122,10 +239,11 @@ def survivors(session: Path) -> list[dict]:
     return out
 
 
-def recheck(module: str, sessions: Path) -> None:
+def recheck(module: str, sessions: Path, full: bool = False) -> None:
     """Re-run the survivors of ``module``'s session against the current tests."""
     session = sessions / f"{module.replace('/', '_')}.sqlite"
-    tests = [t for t in MODULES[module] if (ROOT / t).exists()]
+    table = FULL if full and module in FULL else MODULES
+    tests = present(table[module], ROOT)
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
     alive = []
     found = survivors(session)
@@ -153,10 +271,15 @@ def main(argv=None) -> int:
     parser.add_argument("--keep", type=Path, help="folder for the sessions (default: a temp)")
     parser.add_argument("--recheck", type=Path, metavar="SESSIONS",
                         help="re-run the survivors recorded in SESSIONS with today's tests")
+    parser.add_argument("--full", action="store_true",
+                        help="with --recheck: the module's whole covering files (FULL)")
+    parser.add_argument("--timeout", type=float, default=60.0, help="seconds per mutant")
     args = parser.parse_args(argv)
+    global TIMEOUT
+    TIMEOUT = args.timeout
     if args.recheck:
         for module in args.modules:
-            recheck(module, args.recheck)
+            recheck(module, args.recheck, args.full)
         return 0
     if args.list:
         for m, t in MODULES.items():
