@@ -106,11 +106,11 @@ def deconvolve_tiled(
     whole = np.asarray(image.compute() if lazy else image)
     cores = os.cpu_count() or 1
     if not lazy and overlap_px is None and whole.shape[0] * whole.shape[1] <= WHOLE_FRAME_PX:
-        with sfft.set_workers(cores):  # one level of parallelism: the FFTs' threads, or
+        with sfft.set_workers(cores):  # the only level of parallelism here
             p = dc.plan(
                 whole, kernel, method=method, saturation=saturation, censored=censored, **options
             )
-            return dc.restore(whole, p, censored, workers=cores)  # colour channels side by side
+            return dc.restore(whole, p, censored)
     import dask.array as da  # only the tiled path needs it
 
     with sfft.set_workers(cores):

@@ -27,8 +27,6 @@ so nothing outside the frame is assumed.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from pipeline.core.deconvolve.common import (
@@ -98,13 +96,10 @@ def plan(
     return Plan(method, k, sat, sigma, params, depth)
 
 
-def restore(image, p: Plan, censored=None, *, workers: int = 1) -> np.ndarray:
+def restore(image, p: Plan, censored=None) -> np.ndarray:
     """Apply a :class:`Plan` to ``image``, treated as a complete frame.
 
-    ``workers`` threads restore the channels side by side (numpy, OpenCV and the FFTs
-    release the GIL; each channel's FFTs then run on one thread); the result does not
-    depend on it. Returns an array of the
-    input's shape, float32 for float32 input else float64.
+    Returns an array of the input's shape, float32 for float32 input else float64.
     """
     y = _check_image(image)
     valid = _valid_mask(y, p.saturation, censored)
@@ -113,11 +108,10 @@ def restore(image, p: Plan, censored=None, *, workers: int = 1) -> np.ndarray:
     shared = None
     if p.method == "wiener":  # kernel, variance and Laplacian spectra: once per grid
         shared = _shared_wiener_spectra(p, y.shape[:2], y.dtype)
-
-    def channel(c: int) -> np.ndarray:
+    for c in range(y.shape[2]):
         yc, vc = y[..., c], valid[..., c]
         if p.method == "wiener":
-            return _wiener_channel(
+            xc = _wiener_channel(
                 yc,
                 p.kernel,
                 float(prm["lam"][c]),
@@ -126,22 +120,13 @@ def restore(image, p: Plan, censored=None, *, workers: int = 1) -> np.ndarray:
                 prm["variance"],
                 spectra=shared,
             )
-        if p.method == "rl":
+        elif p.method == "rl":
             thr = None if prm["threshold"] is None else float(prm["threshold"][c])
-            background = float(prm["background"][c])
-            return _rl_channel(yc, vc, p.kernel, prm["iterations"], background, thr)
-        return _sparse_channel(
-            yc, vc, p.kernel, float(prm["mu"][c]), prm["alpha"], prm["iterations"], prm["rho"]
-        )
-
-    channels = range(y.shape[2])
-    if workers <= 1 or len(channels) == 1:  # this thread (keeps its FFT worker setting)
-        results = map(channel, channels)
-    else:  # pool threads run their FFTs on one thread each
-        pool = ThreadPoolExecutor(min(workers, len(channels)), thread_name_prefix="restore")
-        with pool:
-            results = list(pool.map(channel, channels))
-    for c, xc in zip(channels, results):
+            xc = _rl_channel(yc, vc, p.kernel, prm["iterations"], float(prm["background"][c]), thr)
+        else:
+            xc = _sparse_channel(
+                yc, vc, p.kernel, float(prm["mu"][c]), prm["alpha"], prm["iterations"], prm["rho"]
+            )
         out[..., c] = xc
     return out if np.ndim(image) == 3 else out[..., 0]
 
