@@ -49,10 +49,15 @@ def centred_fft(
     The transfer function of convolution with ``kernel`` (no phase from its
     placement). ``real`` gives the half-plane ``rfft2``; ``fft2`` otherwise.
     """
-    grid = np.zeros(shape, dtype=dtype)
     kr, kc = kernel.shape
-    grid[:kr, :kc] = kernel
-    grid = np.roll(grid, (-(kr // 2), -(kc // 2)), axis=(0, 1))
+    if kr > shape[0] or kc > shape[1]:
+        raise ValueError(f"a {kr}x{kc} kernel does not fit on a {shape[0]}x{shape[1]} grid")
+    grid = np.zeros(shape, dtype=dtype)
+    # the kernel's pixel (i, j) goes to (i - kr // 2, j - kc // 2) modulo the grid: the
+    # placement of np.roll, without copying the whole grid twice
+    rows = (np.arange(kr) - kr // 2) % shape[0]
+    cols = (np.arange(kc) - kc // 2) % shape[1]
+    grid[np.ix_(rows, cols)] = kernel
     return (sfft.rfft2 if real else sfft.fft2)(grid, workers=workers)
 
 

@@ -18,6 +18,7 @@ import dataclasses
 import logging
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -351,7 +352,6 @@ def process_stack(
     positions, timings = aligned.positions, aligned.timings
     weights = constant_speed_weights(positions, ends=options.sweep_ends)
 
-    t0 = time.perf_counter()
     blur_span = options.blur_span_px
     if blur_span is not None:
         check_blur_span(stack, blur_span, aligned.shape, "--blur-span-px")
@@ -369,26 +369,13 @@ def process_stack(
             raise InputError(
                 f"{stack.base_dir}: all {n} frames have the same focus position: nothing to sweep"
             )
-        small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
-        max_span = min(400.0, float(np.hypot(*aligned.shape[:2])))  # bounded by the frame
-        try:
-            blur_span = defocus.estimate_blur_span(
-                small, positions, downscale=factor, max_span_px=max_span
-            )
-        except InputError as err:
-            raise InputError(
-                f"{stack.base_dir}: cannot measure the blur across the stack ({err}); "
-                "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
-            ) from err
-        del small
-        log.info("estimated blur span: %.1f px across the stack", blur_span)
-    aligned.previews = None  # not needed past the alignment (and the blur fit)
-    kernel, kernel_samples, kernel_summary = stack_kernel(
-        positions, weights, lens=lens, absolute=aligned.absolute, blur_span_px=blur_span
-    )
-    timings["kernel"] = time.perf_counter() - t0
-
-    average, clipped = accumulate(aligned, weights, options, progress=progress)
+    # The IPSF needs only the previews and the positions, the average only the frames:
+    # the blur-span fit and the kernel run beside the accumulation (issue 15; a failed
+    # fit is reported once the accumulation ends).
+    with ThreadPoolExecutor(1, thread_name_prefix="flexdof-kernel") as pool:
+        kernel_job = pool.submit(_stack_ipsf, aligned, weights, blur_span)
+        average, clipped = accumulate(aligned, weights, options, progress=progress)
+        kernel, kernel_samples, kernel_summary = kernel_job.result()
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
@@ -406,6 +393,34 @@ def process_stack(
     sidecar["kernel"] = kernel_summary
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
+
+
+def _stack_ipsf(aligned: AlignedStack, weights: np.ndarray, blur_span: float | None):
+    """The stack's IPSF (:func:`stack_kernel`, Eqs. 5-6), after measuring the blur span
+    on the aligned previews (:func:`pipeline.core.defocus.estimate_blur_span`) when
+    ``blur_span`` is ``None`` and the positions are not image distances with a lens."""
+    t0 = time.perf_counter()
+    stack, positions = aligned.stack, aligned.positions
+    if blur_span is None and not (aligned.lens is not None and aligned.absolute):
+        small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+        max_span = min(400.0, float(np.hypot(*aligned.shape[:2])))  # bounded by the frame
+        try:
+            blur_span = defocus.estimate_blur_span(
+                small, positions, downscale=factor, max_span_px=max_span
+            )
+        except InputError as err:
+            raise InputError(
+                f"{stack.base_dir}: cannot measure the blur across the stack ({err}); "
+                "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
+            ) from err
+        del small
+        log.info("estimated blur span: %.1f px across the stack", blur_span)
+    aligned.previews = None  # not needed past the alignment (and the blur fit)
+    result = stack_kernel(
+        positions, weights, lens=aligned.lens, absolute=aligned.absolute, blur_span_px=blur_span
+    )
+    aligned.timings["kernel"] = time.perf_counter() - t0
+    return result
 
 
 def _describe_frames(stack: Stack) -> str:

@@ -23,7 +23,9 @@ from the restoration operator's support (see :func:`pipeline.core.deconvolve.com
 
 Frames up to ``WHOLE_FRAME_PX`` (numpy input, no forced ``overlap_px``) are restored
 whole, without dask: one FFT grid per channel costs less than tiles that each carry
-their overlap and padding, and the FFTs use every core (``scipy.fft.set_workers``).
+their overlap and padding. The colour channels are restored side by side, one per core,
+each with single-threaded FFTs (a grey frame's FFTs use every core instead,
+``scipy.fft.set_workers``).
 Larger frames are tiled with tiles at least ``TILE_OVER_REACH`` times the overlap (a
 tile that is mostly overlap repeats its neighbours' work); tiles of one size share
 their kernel spectra (cached in the plan) and run single-threaded FFTs in the dask
@@ -44,6 +46,8 @@ import numpy as np
 from scipy import fft as sfft
 
 from pipeline.core import deconvolve as dc
+from pipeline.core.deconvolve.common import channel_threads
+from pipeline.core.deconvolve.wiener import TAPER_PX
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -106,7 +110,9 @@ def deconvolve_tiled(
     whole = np.asarray(image.compute() if lazy else image)
     cores = os.cpu_count() or 1
     if not lazy and overlap_px is None and whole.shape[0] * whole.shape[1] <= WHOLE_FRAME_PX:
-        with sfft.set_workers(cores):  # the only level of parallelism here
+        # one level of parallelism: the colour channels side by side (each with
+        # single-threaded FFTs), or, for one channel, the FFTs' threads
+        with sfft.set_workers(cores), channel_threads(cores):
             p = dc.plan(
                 whole, kernel, method=method, saturation=saturation, censored=censored, **options
             )
@@ -119,8 +125,7 @@ def deconvolve_tiled(
         )
     dtype = np.float32 if whole.dtype == np.float32 else np.float64
     if not lazy and overlap_px is None:  # else most of each tile's work is overlap
-        taper = max(max(np.shape(kernel)), 16)
-        tile_px = max(tile_px, TILE_OVER_REACH * (2 * p.depth + taper))
+        tile_px = max(tile_px, TILE_OVER_REACH * (2 * p.depth + TAPER_PX))
     arr = (
         image
         if lazy

@@ -4,6 +4,10 @@ noise estimate, the :class:`Plan`, the padded FFT domain and the filter's reach.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -22,6 +26,34 @@ _DEPTH_TOL = 1e-5  # tail of the restoration filter beyond the overlap depth
 # ``scipy.fft.set_workers``), so there is one level of parallelism: the whole-frame path of
 # pipeline.parallel.tiling sets it to the cores, tiles in dask threads run single-threaded.
 _WORKERS = None
+# Colour channels restored side by side: set by the whole-frame path of
+# pipeline.parallel.tiling (:func:`channel_threads`); 1 elsewhere, and in the channel
+# threads themselves (a context variable does not pass into new threads), so tiles in dask
+# threads and nested calls stay serial.
+_CHANNEL_THREADS: ContextVar[int] = ContextVar("channel_threads", default=1)
+
+
+@contextmanager
+def channel_threads(n: int):
+    """Within the block, :func:`map_channels` runs up to ``n`` channels at once.
+
+    Each channel thread's FFTs are single-threaded (``scipy.fft``'s worker count is
+    per thread), so the cores are used by one level of parallelism, not two.
+    """
+    token = _CHANNEL_THREADS.set(max(1, int(n)))
+    try:
+        yield
+    finally:
+        _CHANNEL_THREADS.reset(token)
+
+
+def map_channels(fn: Callable[[int], object], channels: int) -> list:
+    """``[fn(c) for c in range(channels)]``, on :func:`channel_threads` threads."""
+    threads = min(_CHANNEL_THREADS.get(), channels)
+    if threads <= 1:
+        return [fn(c) for c in range(channels)]
+    with ThreadPoolExecutor(threads, thread_name_prefix="flexdof-channel") as pool:
+        return list(pool.map(fn, range(channels)))
 
 
 # ----------------------------------------------------------------------------- validation
@@ -176,7 +208,7 @@ def estimate_noise_sigma(image, *, saturation=None):
     y = _check_image(image)
     sat = _check_saturation(saturation)
     sig = np.array(
-        [_noise_sigma_2d(y[..., c], _valid_mask(y[..., c], sat)) for c in range(y.shape[2])]
+        map_channels(lambda c: _noise_sigma_2d(y[..., c], _valid_mask(y[..., c], sat)), y.shape[2])
     )
     return float(sig[0]) if np.ndim(image) == 2 else sig
 
@@ -184,15 +216,18 @@ def estimate_noise_sigma(image, *, saturation=None):
 def _gradient_energy_2d(y: np.ndarray, valid: np.ndarray) -> float:
     """Mean of ``|grad y|^2`` (forward differences, both directions) over valid pairs."""
     total, count = 0.0, 0
+    y64 = y.astype(np.float64)
     for axis in (0, 1):
         if y.shape[axis] < 2:
             continue
         lo = [slice(None)] * 2
         hi = [slice(None)] * 2
         lo[axis], hi[axis] = slice(None, -1), slice(1, None)
-        d = np.diff(y.astype(np.float64), axis=axis)
+        d = np.diff(y64, axis=axis)
+        d *= d
         ok = valid[tuple(lo)] & valid[tuple(hi)]
-        total += float(np.mean(d[ok] ** 2)) if ok.any() else 0.0
+        pairs = int(np.count_nonzero(ok))
+        total += float(np.sum(d, where=ok)) / pairs if pairs else 0.0
         count += 1
     return total * 2.0 / count if count else 0.0
 
@@ -286,23 +321,29 @@ def _taper_pad(y: np.ndarray, pad: int, taper: int, shape: tuple[int, int]) -> n
     """Reflect ``y`` by ``pad`` px, then fade to its mean over the rest of ``shape``.
 
     The frame sits at offset ``(pad + taper, pad + taper)``; the fade is a raised
-    cosine, so the periodic extension is continuous and FFT wrap-around is smooth.
+    cosine, so the periodic extension is continuous and FFT wrap-around is smooth. The
+    fade weight is the outer product of one profile per axis, 1 except in the bands
+    beyond the reflection, so only those bands are touched (twice at the corners).
     """
     before = pad + taper
     widths = [(before, n - s - before) for s, n in zip(y.shape, shape, strict=True)]
     out = np.pad(y, widths, mode="symmetric")
-    mean = float(np.mean(y))
-    weights = []
-    for (b, a), s in zip(widths, y.shape, strict=True):
+    mean = y.dtype.type(np.mean(y))
+    for axis, ((b, a), s) in enumerate(zip(widths, y.shape, strict=True)):
         w = np.ones(b + s + a)
         left = np.arange(b - pad)
         w[: b - pad] = 0.5 - 0.5 * np.cos(np.pi * (left + 0.5) / max(b - pad, 1))
         fade_after = a - pad
         right = np.arange(fade_after)
         w[b + s + pad :] = 0.5 + 0.5 * np.cos(np.pi * (right + 0.5) / max(fade_after, 1))
-        weights.append(w)
-    taper_w = np.outer(weights[0], weights[1]).astype(y.dtype)
-    return (mean + taper_w * (out - mean)).astype(y.dtype, copy=False)
+        w = w.astype(y.dtype)
+        for band in (slice(0, b - pad), slice(b + s + pad, None)):
+            view = out[band] if axis == 0 else out[:, band]
+            profile = w[band][:, np.newaxis] if axis == 0 else w[band][np.newaxis, :]
+            view -= mean
+            view *= profile
+            view += mean
+    return out
 
 
 # ----------------------------------------------------------------------------- extended domain

@@ -38,6 +38,7 @@ from pipeline.core.deconvolve.common import (
     _per_channel,
     _valid_mask,
     check_kernel,
+    map_channels,
 )
 from pipeline.core.deconvolve.rl import _plan_rl, _rl_channel
 from pipeline.core.deconvolve.sparse import _plan_sparse, _sparse_channel
@@ -90,7 +91,9 @@ def plan(
     valid = _valid_mask(y, sat, censored)
     sigma = _per_channel("noise_sigma", noise_sigma, y.shape[2])
     if sigma is None:
-        sigma = np.array([_noise_sigma_2d(y[..., c], valid[..., c]) for c in range(y.shape[2])])
+        sigma = np.array(
+            map_channels(lambda c: _noise_sigma_2d(y[..., c], valid[..., c]), y.shape[2])
+        )
     builder = {"wiener": _plan_wiener, "rl": _plan_rl, "sparse": _plan_sparse}[method]
     params, depth = builder(y, valid, k, sigma, **options)
     return Plan(method, k, sat, sigma, params, depth)
@@ -102,32 +105,33 @@ def restore(image, p: Plan, censored=None) -> np.ndarray:
     Returns an array of the input's shape, float32 for float32 input else float64.
     """
     y = _check_image(image)
-    valid = _valid_mask(y, p.saturation, censored)
     out = np.empty_like(y)
     prm = p.params
-    shared = None
     if p.method == "wiener":  # kernel, variance and Laplacian spectra: once per grid
         shared = _shared_wiener_spectra(p, y.shape[:2], y.dtype)
-    for c in range(y.shape[2]):
-        yc, vc = y[..., c], valid[..., c]
-        if p.method == "wiener":
-            xc = _wiener_channel(
-                yc,
-                p.kernel,
-                float(prm["lam"][c]),
-                prm["prior"],
-                prm["pad"],
-                prm["variance"],
-                spectra=shared,
+
+        def channel(c):
+            lam = float(prm["lam"][c])
+            out[..., c] = _wiener_channel(
+                y[..., c], p.kernel, lam, prm["prior"], prm["pad"], prm["variance"], spectra=shared
             )
-        elif p.method == "rl":
-            thr = None if prm["threshold"] is None else float(prm["threshold"][c])
-            xc = _rl_channel(yc, vc, p.kernel, prm["iterations"], float(prm["background"][c]), thr)
-        else:
-            xc = _sparse_channel(
-                yc, vc, p.kernel, float(prm["mu"][c]), prm["alpha"], prm["iterations"], prm["rho"]
-            )
-        out[..., c] = xc
+
+    else:  # the iterative methods use the data term's mask
+        valid = _valid_mask(y, p.saturation, censored)
+
+        def channel(c):
+            yc, vc = y[..., c], valid[..., c]
+            if p.method == "rl":
+                thr = None if prm["threshold"] is None else float(prm["threshold"][c])
+                bg = float(prm["background"][c])
+                out[..., c] = _rl_channel(yc, vc, p.kernel, prm["iterations"], bg, thr)
+            else:
+                mu = float(prm["mu"][c])
+                out[..., c] = _sparse_channel(
+                    yc, vc, p.kernel, mu, prm["alpha"], prm["iterations"], prm["rho"]
+                )
+
+    map_channels(channel, y.shape[2])
     return out if np.ndim(image) == 3 else out[..., 0]
 
 

@@ -18,6 +18,7 @@ from pipeline.core.deconvolve.common import (
     _laplacian_spectrum,
     _per_channel,
     _taper_pad,
+    map_channels,
 )
 from pipeline.errors import InputError
 
@@ -28,12 +29,19 @@ def _natural_prior_scale(y, valid, sigma, kernel) -> np.ndarray:
     With ``E|X(w)|^2 = N s2 / |D(w)|^2`` (``D`` the forward-difference pair), Parseval
     gives ``mean|grad y|^2 = s2 sum(k^2) + 4 sigma^2``; solve for ``s2``.
     """
-    energy = np.array([_gradient_energy_2d(y[..., c], valid[..., c]) for c in range(y.shape[2])])
+    energy = np.array(
+        map_channels(lambda c: _gradient_energy_2d(y[..., c], valid[..., c]), y.shape[2])
+    )
     s2 = (energy - 4.0 * sigma**2) / float(np.sum(kernel**2))
     return np.maximum(s2, 4.0 * sigma**2)
 
 
 MAX_NOISE_GAIN = 10.0  # ceiling of the automatic Wiener filter's white-noise gain
+# Width of the fade to the mean beyond the reflected ``pad``: the fade starts ``pad`` (the
+# filter's reach, mass beyond it < 1e-5) from the frame, so its width does not reach the
+# frame; it only smooths the periodic wrap. It was the kernel's size (161 px on pcb10:
+# a 2250x2700 grid where 1890x2400 does; issue 15).
+TAPER_PX = 32
 
 
 def _gain_grid(kernel: np.ndarray, prior: str, shape=None):
@@ -155,9 +163,8 @@ def _wiener_grid(y_shape, kernel, pad):
     """
     if pad >= min(y_shape):
         return (2 * y_shape[0], 2 * y_shape[1]), None
-    taper = max(max(kernel.shape), 16)
-    shape = _fast_shape((y_shape[0] + 2 * (pad + taper), y_shape[1] + 2 * (pad + taper)))
-    return shape, taper
+    shape = _fast_shape((y_shape[0] + 2 * (pad + TAPER_PX), y_shape[1] + 2 * (pad + TAPER_PX)))
+    return shape, TAPER_PX
 
 
 def _wiener_channel(y, kernel, lam, prior, pad, variance=None, spectra=None) -> np.ndarray:
