@@ -352,6 +352,37 @@ def test_corrupt_jpeg_scan_data_is_an_error_naming_the_file(tmp_path):
         read_preview(bad, 64)
 
 
+def test_a_corrupt_jpeg_among_frames_decoding_side_by_side_is_pinned_on_its_file(tmp_path):
+    """Decoders share one stderr capture (issue 15: frames decode in parallel); a
+    warning seen while several decoded is attributed by decoding each suspect alone."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    bad = tmp_path / "frame_07.jpg"
+    _corrupt_jpeg(bad)
+    rng = np.random.default_rng(4)
+    goods = []
+    for i in range(6):
+        good = tmp_path / f"frame_{i:02d}.jpg"
+        cv2.imwrite(str(good), (rng.random((384, 512, 3)) * 255).astype(np.uint8))
+        goods.append(good)
+    paths = [*goods[:3], bad, *goods[3:]] * 3
+
+    def outcome(path):
+        try:
+            return read_frame(path).shape
+        except InputError as err:
+            return str(err)
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(outcome, paths))
+    for path, result in zip(paths, results):
+        if path == bad:
+            assert result.startswith(f"{bad}: corrupt JPEG data (libjpeg: "), result
+        else:
+            assert result == (384, 512, 3), (path, result)
+    assert read_frame(goods[0]).shape == (384, 512, 3)  # the capture window was closed
+
+
 def test_a_sound_jpeg_still_reads(tmp_path):
     good = tmp_path / "good.jpg"
     cv2.imwrite(str(good), np.full((32, 48, 3), 128, np.uint8))

@@ -27,6 +27,7 @@ write is atomic: a temporary file in the target directory, then ``os.replace``.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 import re
@@ -161,35 +162,95 @@ def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
 
 
 # libjpeg reports corrupt entropy-coded data only as a warning on stderr (OpenCV then
-# returns an image with garbage blocks): decoding runs with fd 2 captured, one JPEG at a
-# time per process, and such a warning becomes an error naming the file.
-_STDERR_LOCK = threading.Lock()
+# returns an image with garbage blocks): JPEGs decode with fd 2 captured, and such a
+# warning becomes an error naming the file. Decoders share one capture window, so frames
+# decode side by side (one at a time, the window serialised the accumulation's reads);
+# a warning seen while several decoded is pinned on its file by decoding the suspects
+# again, each alone in its own window.
 _JPEG_FATAL = ("Corrupt JPEG data", "Premature end of JPEG", "Bogus", "Invalid JPEG")
 
 
+class _StderrWindow:
+    """fd 2 redirected to a temporary file while at least one decoder is inside.
+
+    ``inside()`` yields a list that receives, on leaving, what was written to fd 2 while
+    this decoder was inside (its own warnings and those of concurrent decoders). An
+    ``exclusive`` entry waits until the window is empty and keeps others out (new
+    entries wait while it waits). The last
+    decoder to leave restores fd 2 and passes on every line that is not a JPEG warning
+    (another thread's log output, say).
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._inside = 0
+        self._exclusive = False
+        self._waiting = 0  # exclusive entries waiting: they go first
+        self._file = None
+        self._saved = -1
+
+    @contextlib.contextmanager
+    def inside(self, exclusive: bool = False):
+        with self._cond:
+            self._waiting += exclusive
+            while self._exclusive or (self._inside if exclusive else self._waiting):
+                self._cond.wait()
+            self._waiting -= exclusive
+            self._exclusive = exclusive
+            if self._inside == 0:
+                sys.stderr.flush()
+                self._file = tempfile.TemporaryFile()
+                self._saved = os.dup(2)
+                os.dup2(self._file.fileno(), 2)
+            self._inside += 1
+            fd = self._file.fileno()
+            start = os.fstat(fd).st_size
+        seen: list[str] = []
+        try:
+            yield seen
+        finally:
+            with self._cond:
+                end = os.fstat(fd).st_size
+                seen.append(os.pread(fd, end - start, start).decode("utf-8", errors="replace"))
+                self._inside -= 1
+                self._exclusive = False
+                if self._inside == 0:
+                    self._close(fd, end)
+                self._cond.notify_all()
+
+    def _close(self, fd: int, end: int) -> None:
+        os.dup2(self._saved, 2)
+        os.close(self._saved)
+        text = os.pread(fd, end, 0).decode("utf-8", errors="replace")
+        self._file.close()
+        self._file = None
+        for line in text.splitlines():
+            if line.strip() and not _fatal(line):
+                print(line.strip(), file=sys.stderr)
+
+
+def _fatal(line: str) -> bool:
+    return line.strip().startswith(_JPEG_FATAL)
+
+
+_STDERR_WINDOW = _StderrWindow()
+
+
 def _imdecode_jpeg(data: bytes, flags: int, path: Path):
-    with _STDERR_LOCK:
-        sys.stderr.flush()
-        saved = os.dup(2)
-        with tempfile.TemporaryFile() as capture:
-            os.dup2(capture.fileno(), 2)
-            try:
-                image = cv2.imdecode(np.frombuffer(data, np.uint8), flags)
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
-            capture.seek(0)
-            text = capture.read().decode("utf-8", errors="replace")
-    lines = [line.strip() for line in text.splitlines() if line.strip()]
-    fatal = [line for line in lines if line.startswith(_JPEG_FATAL)]
-    if fatal:
-        raise InputError(
-            f"{path}: corrupt JPEG data (libjpeg: {fatal[0]}); the decoded image would hold "
-            "garbage blocks: re-copy or re-export the file"
-        )
-    for line in lines:  # other output of those moments (another thread's log, say): pass it on
-        print(line, file=sys.stderr)
-    return image
+    buffer = np.frombuffer(data, np.uint8)
+    exclusive = False
+    while True:
+        with _STDERR_WINDOW.inside(exclusive) as seen:
+            image = cv2.imdecode(buffer, flags)
+        fatal = [line.strip() for line in "".join(seen).splitlines() if _fatal(line)]
+        if not fatal:
+            return image
+        if exclusive:
+            raise InputError(
+                f"{path}: corrupt JPEG data (libjpeg: {fatal[0]}); the decoded image would hold "
+                "garbage blocks: re-copy or re-export the file"
+            )
+        exclusive = True  # this frame or one decoding beside it: decode it again alone
 
 
 def _read_raw(path: Path) -> np.ndarray:
