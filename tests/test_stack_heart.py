@@ -237,6 +237,28 @@ def test_weighted_sum_graph_per_row_weights_and_identity_warps(tmp_path):
     np.testing.assert_allclose(total, ref, rtol=1e-5, atol=1e-6)
 
 
+@pytest.mark.parametrize("lanes", [1, 2, 3])
+def test_weighted_sum_graph_is_one_chain_per_lane(tmp_path, lanes):
+    """Memory flat in the frame count (issue 15): each frame's step depends on at most
+    one earlier step (its lane's running sum), never on a tree of partial sums, and
+    the lanes decode side by side; the sum is the numpy sum whatever the lane count."""
+    n, shape = 7, (5, 6)
+    paths, arrays = _frames(tmp_path, n, shape, seed=11)
+    weights = np.random.default_rng(12).uniform(0.1, 1.0, n)
+    graph = weighted_sum_graph(paths, [None] * n, weights, shape, lanes=lanes)
+    layers = dict(graph.dask)
+    steps = {k: v for k, v in layers.items() if str(k).startswith("_add_frame")}
+    assert len(steps) == n
+    deps = graph.dask.get_all_dependencies()
+    firsts = [k for k in steps if not any(str(d).startswith("_add_frame") for d in deps[k])]
+    assert len(firsts) == lanes
+    for key in steps:
+        assert sum(str(d).startswith("_add_frame") for d in deps[key]) <= 1
+    total, _, _ = dask.compute(graph, scheduler="threads")[0]
+    ref = sum(np.float64(w) * a.astype(np.float64) for w, a in zip(weights, arrays))
+    np.testing.assert_allclose(total, ref, rtol=1e-5, atol=1e-6)
+
+
 # ----------------------------------------------------------------------------- details
 def test_focal_stack_psf_samples_33_positions_by_default():
     x = np.array([0.0, 1.0, 2.0])

@@ -3,13 +3,13 @@
 Data flow (docs/architecture.md)::
 
     frames -> Stack -> align (homography per frame) -> weights (Sec. 9)
-      -> streaming weighted sum (dask tree reduction) -> sweep image + its IPSF
-      -> deconvolve (tiled) -> output + JSON sidecar
+      -> streaming weighted sum (dask, one chain per worker) -> sweep image
+      -> deconvolve with its IPSF (Eqs. 5-6, computed beside the sum) -> output + sidecar
 
-The weighted sum is a binary tree of merges over per-frame leaves (read, warp,
-weight), so at most a few frames are in memory at once whatever the stack's
-length. The same graph runs on the local threaded scheduler or on a
-``dask.distributed`` cluster (``scheduler="tcp://..."``).
+The weighted sum runs one chain per worker, each adding its frames (read, warp,
+weight) into one running sum, so at most a few frames are in memory at once
+whatever the stack's length. The same graph runs on the local threaded scheduler or
+on a ``dask.distributed`` cluster (``scheduler="tcp://..."``).
 """
 
 from __future__ import annotations
@@ -240,10 +240,11 @@ def accumulate(
         [None if options.align == "none" else a.homography for a in aligned.alignments],
         per_frame,
         aligned.shape,
+        lanes=local_workers(),
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
-    with _TaskProgress("_warped_leaf", lambda done: progress("accumulate", done, used)):
+    with _TaskProgress("_add_frame", lambda done: progress("accumulate", done, used)):
         ((average, clipped, read_s),) = dask.compute(graph)
     progress("accumulate", used, used)
     aligned.timings["accumulate"] = time.perf_counter() - t0
@@ -372,8 +373,12 @@ def process_stack(
     # The IPSF needs only the previews and the positions, the average only the frames:
     # the blur-span fit and the kernel run beside the accumulation (issue 15; a failed
     # fit is reported once the accumulation ends).
+    fit = None  # the aligned previews at the fit's resolution (the full ones are dropped)
+    if needs_fit:
+        fit = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+    aligned.previews = None  # not needed past the alignment: memory flat in the frame count
     with ThreadPoolExecutor(1, thread_name_prefix="flexdof-kernel") as pool:
-        kernel_job = pool.submit(_stack_ipsf, aligned, weights, blur_span)
+        kernel_job = pool.submit(_stack_ipsf, aligned, weights, blur_span, fit)
         average, clipped = accumulate(aligned, weights, options, progress=progress)
         kernel, kernel_samples, kernel_summary = kernel_job.result()
 
@@ -395,29 +400,30 @@ def process_stack(
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
 
 
-def _stack_ipsf(aligned: AlignedStack, weights: np.ndarray, blur_span: float | None):
+def _stack_ipsf(aligned: AlignedStack, weights: np.ndarray, blur_span: float | None, fit):
     """The stack's IPSF (:func:`stack_kernel`, Eqs. 5-6), after measuring the blur span
-    on the aligned previews (:func:`pipeline.core.defocus.estimate_blur_span`) when
-    ``blur_span`` is ``None`` and the positions are not image distances with a lens."""
+    (:func:`pipeline.core.defocus.estimate_blur_span`) on ``fit``, the aligned previews
+    at the fit's resolution and their downscale factor, when given."""
     t0 = time.perf_counter()
-    stack, positions = aligned.stack, aligned.positions
-    if blur_span is None and not (aligned.lens is not None and aligned.absolute):
-        small, factor = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+    if fit is not None:
+        small, factor = fit
         max_span = min(400.0, float(np.hypot(*aligned.shape[:2])))  # bounded by the frame
         try:
             blur_span = defocus.estimate_blur_span(
-                small, positions, downscale=factor, max_span_px=max_span
+                small, aligned.positions, downscale=factor, max_span_px=max_span
             )
         except InputError as err:
             raise InputError(
-                f"{stack.base_dir}: cannot measure the blur across the stack ({err}); "
+                f"{aligned.stack.base_dir}: cannot measure the blur across the stack ({err}); "
                 "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
             ) from err
-        del small
         log.info("estimated blur span: %.1f px across the stack", blur_span)
-    aligned.previews = None  # not needed past the alignment (and the blur fit)
     result = stack_kernel(
-        positions, weights, lens=aligned.lens, absolute=aligned.absolute, blur_span_px=blur_span
+        aligned.positions,
+        weights,
+        lens=aligned.lens,
+        absolute=aligned.absolute,
+        blur_span_px=blur_span,
     )
     aligned.timings["kernel"] = time.perf_counter() - t0
     return result
