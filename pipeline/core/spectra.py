@@ -25,7 +25,9 @@ def natural_image_spectrum(shape: tuple[int, int]) -> np.ndarray:
     return power / power.sum()
 
 
-def _common_spectra(k1: np.ndarray, k2: np.ndarray, n: int | None):
+def _comparison_grid(k1: np.ndarray, k2: np.ndarray, n: int | None) -> tuple[int, int]:
+    """The ``n x n`` grid two kernels are compared on (default: a power of two >= twice
+    the larger kernel, so the difference does not wrap around)."""
     for name, k in (("k1", k1), ("k2", k2)):
         if k.ndim != 2 or k.shape[0] % 2 == 0 or k.shape[1] % 2 == 0:
             raise InputError(f"{name} must be a 2-D kernel of odd size, got shape {k.shape}")
@@ -33,7 +35,12 @@ def _common_spectra(k1: np.ndarray, k2: np.ndarray, n: int | None):
             raise InputError(f"{name} must be finite")
     size = max(*k1.shape, *k2.shape)
     n = n or max(64, 1 << (2 * size - 1).bit_length())
-    return centred_fft(k1, (n, n)), centred_fft(k2, (n, n)), (n, n)
+    return (n, n)
+
+
+def _common_spectra(k1: np.ndarray, k2: np.ndarray, n: int | None):
+    shape = _comparison_grid(k1, k2, n)
+    return centred_fft(k1, shape), centred_fft(k2, shape), shape
 
 
 def centred_fft(
@@ -81,19 +88,26 @@ def dissimilarities(
 ) -> np.ndarray:
     """:func:`dissimilarity` of each of ``kernels`` (n, kh, kw) to ``reference``.
 
-    The same numbers as ``[dissimilarity(k, reference) for k in kernels]``, with the
-    reference's spectrum, its ``|K|^2 + eps`` and the natural-image weights computed once.
+    The same numbers as ``[dissimilarity(k, reference) for k in kernels]`` (to rounding),
+    with the reference's spectrum, its ``|K|^2 + eps`` and the natural-image weights
+    computed once, and on the real FFT's half-plane (half the work).
     """
     kernels = np.asarray(kernels, float)
     reference = np.asarray(reference, float)
     if kernels.ndim != 3 or len(kernels) == 0:
         raise InputError(f"kernels must be a non-empty (n, rows, cols) array, got {kernels.shape}")
-    _, f2, shape = _common_spectra(kernels[0], reference, n)
-    weights = natural_image_spectrum(shape)
+    shape = _comparison_grid(kernels[0], reference, n)
+    half = shape[1] // 2 + 1  # real kernels: |K(-w)| = |K(w)|, so the rfft half-plane does,
+    multiplicity = np.full(half, 2.0)  # each interior column standing for two
+    multiplicity[0] = 1.0
+    if shape[1] % 2 == 0:
+        multiplicity[-1] = 1.0  # the Nyquist column is its own mirror
+    weights = natural_image_spectrum(shape)[:, :half] * multiplicity  # |w|^2 is even in w
+    f2 = centred_fft(reference, shape, real=True)
     ref_power = np.abs(f2) ** 2 + eps
     out = np.empty(len(kernels))
     for i, k in enumerate(kernels):
-        f1 = centred_fft(k, shape)
+        f1 = centred_fft(k, shape, real=True)
         diff2 = np.abs(f1 - f2) ** 2
         terms = diff2 / (np.abs(f1) ** 2 + eps) + diff2 / ref_power  # Eq. 8
         out[i] = float(np.sum(terms * weights))
