@@ -150,6 +150,11 @@ def build_cases() -> dict[str, Case]:
     cases.append(edge_case(
         "edge sweep", "planes 500 | 1500 mm, swept 1500->500 mm",
         Camera(LENS, Profile([0.0, 0.1], [v(FAR_MM), v(NEAR_MM)]))))
+    cases.append(edge_case(
+        "edge jump sweep", f"planes {JUMP_NEAR_MM:g} | {JUMP_FAR_MM:g} mm, swept "
+        f"{JUMP_FAR_MM:g}->{JUMP_NEAR_MM:g} mm (up to 18 px blur)",
+        Camera(LENS, Profile([0.0, 0.1], [v(JUMP_FAR_MM), v(JUMP_NEAR_MM)])),
+        near_mm=JUMP_NEAR_MM, far_mm=JUMP_FAR_MM))
     line = ROLLING.line_time_us * 1e-6
     readout = (ROWS - 1) * line
     rolling = Camera(ROLLING, Profile([0.0, readout + 0.01], [v(1500.0), v(500.0)]),

@@ -524,8 +524,9 @@ def _edge_cells(scene: Scene, band: Band, cache: _KernelCache, edge: float, edge
     follow the occluders' pixel lines, :mod:`pipeline.core.simulate.edge`). During a sweep
     the number ``n`` of time cells per sub-step doubles until the estimate is within
     ``tol``: the RMS change of the render from ``n`` to ``2n`` time cells (the layered
-    part cancels), over the scene's RMS contrast, times 2 (the error of ``n`` cells if it
-    falls at least as ``1/n``; it falls about as ``1/n^2``, and 2x bounds it at 1.5x).
+    part cancels), over the scene's RMS contrast, times 2: the error of ``n`` cells if it
+    falls at least as ``1/n`` (on the reference edge sweep it falls faster, and the
+    estimate is 1.3-2.2x the measured error).
     """
     from pipeline.core.simulate import edge as edge_model
 

@@ -39,7 +39,14 @@ composited "over" back to front, a layer covered by every layer nearer by more t
 
 The over model misses partial occlusion (a pixel's aperture split by the edge when both
 sides are out of focus); the plan estimates that error with an exact straight-edge trace
-(:mod:`pipeline.core.simulate.edge`).
+(:mod:`pipeline.core.simulate.edge`). Where it exceeds the tolerance the plan asks for
+sub-aperture compositing (``Plan.edge_time_cells``): in a box around the occluding
+layers' edges the aperture is split into cells along the occluders' pixel lines, each
+cell's view composited "over" with its own partial pillboxes (Eq. 2) and visibilities,
+and the cells averaged (over ``edge_time_cells`` time cells per sub-step for a sweep,
+whose IPSF is the time average of Eqs. 5-6); the difference to the over model is added
+to the layered render (:func:`_edge_correction`). A static detector is then exact at an
+edge between two surfaces; during a sweep the error falls with the time cells.
 
 Magnification: the image scales by ``p(t) / p_ref`` about the centre (Sec. 3, footnote 1);
 when it matters the exposure is cut into sub-steps, each rendered with its own IPSF and
