@@ -145,10 +145,24 @@ def signed_radius(lens, inv_depth: float, p_mm: float, scale: float = 1.0) -> fl
     """Signed blur radius (grid px) of inverse depth ``D`` for a detector at ``p``.
 
     ``rho = (a/2) (p / scale) (D - D_p) / pitch`` with ``D_p = 1/f - 1/p`` the inverse depth
-    in focus: ``2 |rho|`` is Eq. 2's blur diameter ``a |v - p| / v`` in pixels, divided by
-    the step's image ``scale`` (as the kernels of the simulator's scaled sub-steps). The
-    sign says on which side of focus ``D`` lies: a ray through aperture point ``xi`` meets
-    the plane at ``g0 - rho xi`` (mirrored for ``rho < 0``).
+    in focus: ``2 |rho|`` is Eq. 2's blur diameter ``b = a |v - p| / v`` in pixels, divided
+    by the step's image ``scale`` (as the kernels of the simulator's scaled sub-steps).
+
+    Parameters
+    ----------
+    lens : pipeline.core.lens.Lens
+    inv_depth : float
+        ``D = 1/u`` (1/mm).
+    p_mm : float
+        Detector position ``p``.
+    scale : float
+        The sub-step's image scale ``p_step / p_ref``.
+
+    Returns
+    -------
+    float
+        ``rho``; its sign says on which side of focus ``D`` lies: a ray through aperture
+        point ``xi`` meets the plane at ``g0 - rho xi`` (mirrored for ``rho < 0``).
     """
     d_p = 1.0 / lens.focal_length_mm - 1.0 / p_mm
     return 0.5 * lens.aperture_mm * p_mm / (lens.pixel_pitch_mm * scale) * (inv_depth - d_p)
@@ -157,9 +171,21 @@ def signed_radius(lens, inv_depth: float, p_mm: float, scale: float = 1.0) -> fl
 def aperture_cells(radii) -> tuple[np.ndarray, np.ndarray]:
     """Rectangles of the unit aperture bounded by the pixel lines of layers of radii ``radii``.
 
-    Lines ``xi = (d + 1/2) / |rho|`` (integer ``d``) of every radius, the same in x and y.
-    Returns ``(cells, shares)``: ``cells`` of shape ``(J, 4)`` as ``(x0, x1, y0, y1)``, only
-    those meeting the disk, and each one's fraction of the disk's area (they sum to 1).
+    Through a cell the rays of any grid point meet each of these layers (a pillbox of
+    Eq. 3 with the radius of Eq. 2) inside one pixel.
+
+    Parameters
+    ----------
+    radii : sequence of float
+        Signed radii ``rho`` (grid px) of the occluding layers; lines ``xi = (d + 1/2) /
+        |rho|`` (integer ``d``) of every radius, the same in x and y.
+
+    Returns
+    -------
+    cells : ndarray, shape (J, 4)
+        ``(x0, x1, y0, y1)`` of the rectangles that meet the unit disk.
+    shares : ndarray, shape (J,)
+        Each cell's fraction of the disk's area (they sum to 1).
     """
     lines = [-1.0, 1.0]
     for rho in radii:
@@ -176,12 +202,24 @@ def aperture_cells(radii) -> tuple[np.ndarray, np.ndarray]:
 
 
 def cell_kernels(cells: np.ndarray, rho: float, half: int) -> np.ndarray:
-    """The pillbox of radius ``|rho|`` restricted to each aperture cell (Eq. 2's disk).
+    """The pillbox (Eq. 3) of radius ``|rho|`` (Eq. 2) restricted to each aperture cell.
 
-    ``K[j, half + dy, half + dx]``: fraction of the aperture inside cell ``j`` whose rays
-    meet the layer in the pixel at offset ``(dy, dx)`` from ``g0`` (a *correlation*
-    kernel: for ``rho < 0`` the cell's view is mirrored). Shape ``(J, 2 half + 1, 2 half
-    + 1)``; summed over ``j`` it is the whole pillbox.
+    Parameters
+    ----------
+    cells : ndarray, shape (J, 4)
+        From :func:`aperture_cells`.
+    rho : float
+        The layer's signed radius (:func:`signed_radius`).
+    half : int
+        Kernel half size; at least ``ceil(|rho| + 1/2)`` for the whole disk.
+
+    Returns
+    -------
+    ndarray, shape (J, 2 half + 1, 2 half + 1)
+        ``K[j, half + dy, half + dx]``: the fraction of the aperture inside cell ``j``
+        whose rays meet the layer in the pixel at offset ``(dy, dx)`` from ``g0`` (a
+        *correlation* kernel: for ``rho < 0`` the cell's view is mirrored). Summed over
+        ``j`` it is the whole pillbox.
     """
     off = np.arange(-half, half + 1, dtype=float)
     r0, r1 = _rect(off, _safe(float(rho)))

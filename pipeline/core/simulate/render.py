@@ -257,18 +257,36 @@ def _layered(
 def _edge_correction(out, blocks, layers, profile, lens, edge, scale, time_cells, pad) -> None:
     """Add sub-aperture compositing minus 'over' compositing near occluding edges to ``out``.
 
-    ``blocks``: each layer's unblurred premultiplied colour and alpha (last channel) on
-    the padded grid, near to far. A layer ``k`` occludes layer ``i`` when ``D_k > D_i +
-    edge`` (as in the over model). The window ``profile`` is cut into ``time_cells``
-    equal cells; in each, at its mid-time detector position ``p``, every layer is a
-    pillbox of signed radius ``rho_i(p)`` (Eq. 2, :func:`edge.signed_radius`), the aperture
-    is split into the cells bounded by the occluders' pixel lines
-    (:func:`edge.aperture_cells`), and each cell's view is composited with its own
-    partial kernels and visibilities (:mod:`pipeline.core.simulate.edge`). Subtracting
-    the over model made from the same pillboxes leaves only the partial-occlusion
-    correction, which is 0 where no occluder's alpha changes within its blur: the work is
-    confined to the box around the occluders' edges (``rho`` of the time cells and the
-    IPSF of Eqs. 5-6 agree as the cells shrink).
+    The window ``profile`` is cut into ``time_cells`` equal cells; in each, at its
+    mid-time detector position ``p``, every layer is a pillbox (Eq. 3) of signed radius
+    ``rho_i(p)`` (Eq. 2, :func:`edge.signed_radius`), the aperture is split into the cells
+    bounded by the occluders' pixel lines (:func:`edge.aperture_cells`), and each cell's
+    view is composited with its own partial kernels and visibilities
+    (:mod:`pipeline.core.simulate.edge`). Subtracting the over model made from the same
+    pillboxes leaves only the partial-occlusion correction, which is 0 where no
+    occluder's alpha changes within its blur: the work is confined to the box around the
+    occluders' edges. The time average of the pillboxes tends to the IPSF of Eqs. 5-6 as
+    the time cells shrink.
+
+    Parameters
+    ----------
+    out : ndarray
+        The layered render on the padded grid (rows, cols, channels); changed in place.
+    blocks : list of (int, (r0, r1, c0, c1), ndarray)
+        Each layer's index, extent on the padded grid and unblurred premultiplied colour
+        with its alpha as the last channel, near to far.
+    layers : sequence of Layer
+    profile : Profile
+        The sub-step's motion window.
+    lens : Lens
+    edge : float
+        Layer ``k`` occludes layer ``i`` when ``D_k > D_i + edge`` (as in the over model).
+    scale : float
+        The sub-step's image scale (its kernels are in grid px).
+    time_cells : int
+        Time cells of a moving window (a static one needs one).
+    pad : int
+        The padding of ``out``, at least every layer's kernel half size.
     """
     inv = {i: layers[i].inv_rep for i, _, _ in blocks}
     occluders = {k: [j for j in inv if inv[j] > inv[k] + edge] for k in inv}
