@@ -339,3 +339,20 @@ def test_cli_explain(tmp_path, capsys):
     text = capsys.readouterr().out
     assert "simulation plan" in text and "[skip ] magnification" in text
     assert read.read_frame(out).shape == img.shape
+
+
+@pytest.mark.parametrize("rho", [3.3, -2.1, 0.2])
+def test_aperture_cells_split_the_pillbox_along_the_pixel_lines(rho):
+    """The cells cover the aperture once; their partial kernels add up to Eq. 2's pillbox,
+    and through each cell the rays meet the layer that made the lines in one pixel."""
+    from pipeline.core.simulate import edge
+
+    cells, shares = edge.aperture_cells([rho])
+    assert shares.sum() == pytest.approx(1, abs=1e-12)
+    half = math.ceil(abs(rho) + 0.5)
+    kernels = edge.cell_kernels(cells, rho, half)
+    assert np.allclose(kernels.sum(axis=(1, 2)), shares, atol=1e-14)
+    assert np.allclose(kernels.sum(axis=0), psf.raster_pillbox(2 * abs(rho), half), atol=1e-14)
+    assert np.all(np.count_nonzero(kernels > 1e-14, axis=(1, 2)) == 1)
+    other = edge.cell_kernels(cells, 1.7 * rho + 0.4, half + 2)  # another layer, same cells
+    assert np.allclose(other.sum(axis=0), psf.raster_pillbox(2 * abs(1.7 * rho + 0.4), half + 2))

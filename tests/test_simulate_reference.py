@@ -11,6 +11,7 @@ flip to a failure (XPASS) when the simulator is fixed: then remove the mark.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import tracemalloc
@@ -134,6 +135,9 @@ def test_reference_converged():
         ("edge focus between", 1e-2),
         ("edge focus between", 1e-3),
         ("edge focus between", 1e-4),
+        ("edge jump between", 1e-2),
+        ("edge jump between", 1e-3),
+        ("edge jump between", 1e-4),
         ("edge sweep", 1e-2),
         ("edge sweep", 1e-3),
         ("edge sweep", 1e-4),
@@ -143,6 +147,50 @@ def test_reference_converged():
 )
 def test_measured_error_within_estimate(name, tol):
     assert_estimate_holds(*measured_and_estimate(name, tol))
+
+
+@pytest.mark.parametrize("name", ["edge focus between", "edge jump between"])
+def test_sub_aperture_cells_make_a_static_edge_exact(name):
+    """Both sides out of focus (opposite signs): 'over' compositing was off by 0.0256 (0.0356
+    for the larger jump) at every tolerance; aperture cells along the near plane's pixel
+    lines trace it exactly, and only near the edge (elsewhere the render is unchanged)."""
+    case = CASES[name]
+    pl = simulate.plan(case.scene, case.camera, tolerance=1e-2)
+    assert pl.edge_time_cells == 1 and pl.estimated_error == 0
+    out = simulate.render(case.scene, case.camera, plan_=pl)
+    over_plan = dataclasses.replace(pl, edge_time_cells=0)
+    over = simulate.render(case.scene, case.camera, plan_=over_plan)
+    assert refcases.rel_rms(out, reference(name), case.contrast) < 1e-12
+    assert refcases.rel_rms(over, reference(name), case.contrast) > 0.02
+    far_from_edge = np.abs(np.arange(refcases.COLS) - refcases.EDGE_COL) > 12
+    assert np.array_equal(out[:, far_from_edge], over[:, far_from_edge])
+
+
+def test_edge_sweep_time_cells_follow_the_tolerance():
+    """The occlusion estimate (doubling the time cells) falls with the tolerance and bounds
+    the measured partial-occlusion error: render vs the same plan with 8x the cells."""
+    case = CASES["edge sweep"]
+    for tol in (1e-2, 1e-3):
+        pl = simulate.plan(case.scene, case.camera, tolerance=tol)
+        occl = next(e for e in pl.effects if e.name == "occlusion").estimated_error
+        assert 0 < occl <= tol
+        out = simulate.render(case.scene, case.camera, plan_=pl)
+        fine = dataclasses.replace(pl, edge_time_cells=8 * pl.edge_time_cells)
+        assert_estimate_holds(
+            refcases.rel_rms(out, simulate.render(case.scene, case.camera, plan_=fine),
+                             case.contrast),
+            occl,
+        )
+
+
+def test_edge_cells_beyond_the_work_budget_keep_over_compositing(monkeypatch):
+    """Too much work for sub-aperture compositing: 'over' with the straight-edge estimate."""
+    monkeypatch.setattr(simulate.planner, "EDGE_WORK_BUDGET", 1.0)
+    case = CASES["edge focus between"]
+    pl = simulate.plan(case.scene, case.camera, tolerance=1e-3)
+    assert pl.edge_time_cells == 0
+    assert_estimate_holds(*measured_and_estimate("edge focus between", 1e-3))
+    assert pl.estimated_error == pytest.approx(0.0256, abs=5e-4)
 
 
 def small_rolling(rows: int, cols: int = 32):

@@ -27,6 +27,7 @@ ROLLING = dataclasses.replace(LENS, shutter="rolling", line_time_us=1000.0)
 WIDE = Lens(focal_length_mm=4.0, f_number=2.8, pixel_pitch_um=5.0, width_px=COLS,
             height_px=ROWS, name="wide 4 mm f/2.8")
 NEAR_MM, FAR_MM, EDGE_COL = 500.0, 1500.0, COLS // 2
+JUMP_NEAR_MM, JUMP_FAR_MM = 300.0, 5000.0  # a larger depth jump
 
 
 def texture(shape, seed: int) -> np.ndarray:
@@ -90,16 +91,17 @@ def smooth_case(name, description, radiance, depth, camera, *, n_time=256, n_lay
                 {"n_time": n_time, "n_layers": n_layers}, smooth=True)
 
 
-def edge_case(name, description, camera, *, n_time=256, seed=20):
+def edge_case(name, description, camera, *, n_time=256, seed=20, near_mm=NEAR_MM,
+              far_mm=FAR_MM):
     near, far = texture((ROWS, COLS), seed), texture((ROWS, COLS), seed + 1)
     alpha = np.zeros((ROWS, COLS))
     alpha[:, :EDGE_COL] = 1.0
-    scene = Scene.from_planes([(far, None, FAR_MM), (near, alpha, NEAR_MM)])
+    scene = Scene.from_planes([(far, None, far_mm), (near, alpha, near_mm)])
     args = _motion_args(camera)
     static = np.ptp(camera.motion.image_distances_mm) == 0
 
     def reference(n_time=n_time):
-        return raytrace.render_edge(near, far, EDGE_COL, NEAR_MM, FAR_MM, **args,
+        return raytrace.render_edge(near, far, EDGE_COL, near_mm, far_mm, **args,
                                     n_time=1 if static else n_time)
 
     visible = np.where(alpha > 0, near, far)
@@ -142,8 +144,17 @@ def build_cases() -> dict[str, Case]:
             f"planes 500 | 1500 mm, vertical edge at col {EDGE_COL}, focus {focus:g} mm",
             Camera.static(LENS, v(focus), 0.1)))
     cases.append(edge_case(
+        "edge jump between", f"planes {JUMP_NEAR_MM:g} | {JUMP_FAR_MM:g} mm, vertical edge at "
+        f"col {EDGE_COL}, focus 560 mm (9 px blur on both sides, opposite signs)",
+        Camera.static(LENS, v(560.0), 0.1), near_mm=JUMP_NEAR_MM, far_mm=JUMP_FAR_MM))
+    cases.append(edge_case(
         "edge sweep", "planes 500 | 1500 mm, swept 1500->500 mm",
         Camera(LENS, Profile([0.0, 0.1], [v(FAR_MM), v(NEAR_MM)]))))
+    cases.append(edge_case(
+        "edge jump sweep", f"planes {JUMP_NEAR_MM:g} | {JUMP_FAR_MM:g} mm, swept "
+        f"{JUMP_FAR_MM:g}->{JUMP_NEAR_MM:g} mm (up to 18 px blur)",
+        Camera(LENS, Profile([0.0, 0.1], [v(JUMP_FAR_MM), v(JUMP_NEAR_MM)])),
+        near_mm=JUMP_NEAR_MM, far_mm=JUMP_FAR_MM))
     line = ROLLING.line_time_us * 1e-6
     readout = (ROWS - 1) * line
     rolling = Camera(ROLLING, Profile([0.0, readout + 0.01], [v(1500.0), v(500.0)]),
