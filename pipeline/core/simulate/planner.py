@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import collections
 import dataclasses
-import importlib
 import itertools
 import math
 
@@ -18,6 +17,8 @@ from pipeline.core import optics, psf, spectra, validate
 from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile
 from pipeline.core.scene import Camera, Exposure, Scene, mean_position
+from pipeline.core.simulate import composite
+from pipeline.core.simulate import edge as edge_model
 from pipeline.errors import InputError
 
 REFERENCE_GRID = 256
@@ -548,10 +549,6 @@ def _edge_cells(scene: Scene, band: Band, cache: _KernelCache, edge: float, edge
     falls at least as ``1/n`` (on the reference edge sweeps it falls faster: the total
     estimates are 1.4-2.5x the measured errors).
     """
-    from pipeline.core.simulate import edge as edge_model
-
-    # the module (the package's name ``render`` is the function); imported here: it imports us
-    rendering = importlib.import_module("pipeline.core.simulate.render")
     lens = cache.lens
     reps = [layer.inv_rep for layer in band.layers]
     front = [d for d in reps if d > min(reps) + edge]  # layers that occlude another
@@ -576,7 +573,7 @@ def _edge_cells(scene: Scene, band: Band, cache: _KernelCache, edge: float, edge
     def image(n):
         return sum(
             st.weight
-            * rendering._layered(scene, band.layers, st.profile, cache, True, edge, st.scale, n)
+            * composite.layered(scene, band.layers, st.profile, cache, True, edge, st.scale, n)
             for st in band.steps
         ).mean(axis=-1)
 
@@ -599,7 +596,6 @@ def _occlusion_error(scene: Scene, camera: Camera, bands, p_ref: float) -> float
     ``sqrt(sum L e / N) / contrast``. It is 0 where either side is in focus. Self-edges of
     one surface (depth steps in a depth map) are not counted.
     """
-    from pipeline.core.simulate import edge as edge_model
 
     lens = camera.lens
     rows, cols = scene.shape
