@@ -149,6 +149,31 @@ FULL: dict[str, list[str]] = {
     "tether/session.py": _TETHER_FULL,
     "core/deconvolve/rl.py": DECONVOLVE,
 }
+# ---- fast selections (helper mutW): weights, accumulate, dispatch, tiling ---------------------
+_WT = "tests/test_weights.py"
+MODULES["core/weights.py"] = [  # the same tests, cheapest first (the CLI ones last)
+    *(f"{_WT}::{t}" for t in (
+        "test_constant_speed_weights_single_frame_and_unsorted_duplicates",
+        "test_full_ends_give_equal_weights_for_even_spacing",
+        "test_discontinuous_full_range_equals_constant_speed",
+        "test_discontinuous_errors", "test_row_weights_outside",
+        "test_row_weights_window_is_a_short_sweep",
+        "test_discontinuous_concentrates_on_the_ranges",
+        "test_full_ends_emulate_a_sweep_half_a_spacing_beyond_the_end_frames",
+        "test_row_weights_reproduce_each_rows_position",
+        "test_discontinuous_single_range_is_an_interpolated_sweep",
+        "test_constant_speed_weights_match_a_sampled_sweep",
+        "test_dof_errors", "test_dof_rows_csv_and_in_focus",
+        "test_dof_tilted_rows_focus_on_the_plane")),
+]
+FULL["core/weights.py"] = [_WT]
+_SH = "tests/test_stack_heart.py"
+MODULES["parallel/accumulate.py"] = [  # test_engine (34 s) only adds the CLI around it
+    f"{_SH}::test_weighted_sum_graph_equals_a_numpy_sum",
+    f"{_SH}::test_weighted_sum_graph_per_row_weights_and_identity_warps",
+    "tests/test_accumulate.py",
+]
+FULL["parallel/accumulate.py"] = [_SH, "tests/test_engine.py", "tests/test_accumulate.py"]
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
 os.environ.setdefault("FLEXDOF_SHARED_DATA", str(ROOT.parent / "shared" / "data"))
