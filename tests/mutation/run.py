@@ -153,6 +153,8 @@ FULL: dict[str, list[str]] = {
 _WT = "tests/test_weights.py"
 MODULES["core/weights.py"] = [  # the same tests, cheapest first (the CLI ones last)
     *(f"{_WT}::{t}" for t in (
+        "test_weights_validate_their_inputs",
+        "test_row_windows_must_fit_inside_the_stack_at_both_ends",
         "test_constant_speed_weights_single_frame_and_unsorted_duplicates",
         "test_full_ends_give_equal_weights_for_even_spacing",
         "test_discontinuous_full_range_equals_constant_speed",
@@ -174,6 +176,44 @@ MODULES["parallel/accumulate.py"] = [  # test_engine (34 s) only adds the CLI ar
     "tests/test_accumulate.py",
 ]
 FULL["parallel/accumulate.py"] = [_SH, "tests/test_engine.py", "tests/test_accumulate.py"]
+_DC, _AS, _TL = "tests/test_deconvolve.py", "tests/test_deconvolve_asymmetric.py", \
+    "tests/test_tiling.py"
+MODULES["core/deconvolve/dispatch.py"] = [  # no sparse quality runs (2-4 s each)
+    *(f"{_DC}::{t}" for t in (
+        "test_bad_method_and_options_rejected", "test_non_finite_image_rejected",
+        "test_bad_kernel_rejected", "test_delta_kernel_returns_input",
+        "test_constant_image_stays_constant", "test_zero_image_and_zero_pixels",
+        "test_damped_rl_limits_are_plain_rl_and_no_update",
+        "test_wiener_is_exact_inverse_without_noise", "test_channels_are_independent[wiener]",
+        "test_channels_are_independent[rl]", "test_saturated_pixels_excluded[rl]",
+        "test_rl_negative_pixels_keep_nonnegative_output",
+        "test_zero_noise_and_spectral_zeros_improve[wiener]",
+        "test_zero_noise_and_spectral_zeros_improve[rl]",
+        "test_natural_prior_beats_white_prior")),
+    *(f"{_AS}::{t}" for t in (
+        "test_methods_undo_a_one_sided_blur_and_the_flip_does_not[wiener]",
+        "test_methods_undo_a_one_sided_blur_and_the_flip_does_not[rl]",
+        "test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[wiener]",
+        "test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[rl]",
+        "test_wiener_prior_fit_subtracts_the_whole_noise_term")),
+    f"{_TL}::test_numpy_input_returns_numpy_and_2d",
+    f"{_TL}::test_sparse_is_never_tiled_so_it_equals_the_untiled_result",
+    "tests/test_deconvolve_dispatch.py",
+]
+FULL["core/deconvolve/dispatch.py"] = [*DECONVOLVE, _TL, "tests/test_deconvolve_dispatch.py"]
+MODULES["parallel/tiling.py"] = [
+    *(f"{_TL}::{t}" for t in (
+        "test_bad_tile_size_and_nan_rejected", "test_numpy_input_returns_numpy_and_2d",
+        "test_operator_wider_than_frame_uses_one_tile",
+        "test_sparse_is_never_tiled_so_it_equals_the_untiled_result")),
+    f"{_AS}::test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[wiener]",
+    f"{_AS}::test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[rl]",
+    "tests/test_tiling_geometry.py",
+    f"{_AS}::test_tiles_honour_the_censored_mask[rl]",
+    f"{_TL}::test_tiled_equals_untiled_on_uneven_chunks",
+]
+FULL["parallel/tiling.py"] = [_TL, _AS, "tests/test_tiling_geometry.py"]
+# ---- end of mutW's selections ----------------------------------------------------------------
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
 os.environ.setdefault("FLEXDOF_SHARED_DATA", str(ROOT.parent / "shared" / "data"))
