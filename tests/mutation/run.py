@@ -293,38 +293,50 @@ def score(module: str, work: Path, sessions: Path) -> dict:
     return counts
 
 
-def survivors(session: Path) -> list[dict]:
+def survivors(session: Path, timeouts: bool = False) -> list[dict]:
+    """The surviving mutants of a session; with ``timeouts`` also those "killed" by the
+    timeout (a machine that pauses niced jobs for a benchmark times out healthy runs)."""
     dump = subprocess.run(["cosmic-ray", "dump", str(session)], check=True,
                           capture_output=True, text=True).stdout
     out = []
     for line in dump.splitlines():
         job, result = json.loads(line)
-        if result is not None and result.get("test_outcome") == "survived":
+        if result is not None and (result.get("test_outcome") == "survived" or (
+                timeouts and result.get("output") == "timeout")):
             out.append(job["mutations"][0])
     return out
 
 
-def recheck(module: str, sessions: Path, full: bool = False) -> None:
-    """Re-run the survivors of ``module``'s session against the current tests."""
+def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = False) -> None:
+    """Re-run the survivors of ``module``'s session against the current tests (with
+    ``timeouts``: also the mutants it timed out, allowed 10 times the timeout)."""
     session = sessions / f"{module.replace('/', '_')}.sqlite"
     table = FULL if full and module in FULL else MODULES
     tests = present(table[module], ROOT)
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
     alive = []
-    found = survivors(session)
+    found = survivors(session, timeouts)
     for m in found:
         with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
             work = Path(tmp)
             scratch_copy(work)
             subprocess.run(["cosmic-ray", "apply", m["module_path"], m["operator_name"],
                             str(m["occurrence"])], cwd=work, check=True, capture_output=True)
-            proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, check=False)
+            try:
+                proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
+                                      check=False, timeout=10 * TIMEOUT)
+                code = proc.returncode
+            except subprocess.TimeoutExpired:
+                code = "timeout"
         line = m["start_pos"][0]
         src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
-        verdict = "KILLED" if proc.returncode == 1 else "SURVIVED"
+        # 1: a test failed, 2: collection failed (the mutant breaks an import);
+        # 3-5 are pytest's own errors (a bad node id): never a kill
+        verdict = {0: "SURVIVED", 1: "KILLED", 2: "KILLED", "timeout": "TIMEOUT"}.get(code,
+                                                                                   "ERROR")
         print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
               flush=True)
-        if verdict == "SURVIVED":
+        if verdict in ("SURVIVED", "ERROR"):  # a hang at 10x the timeout counts as a kill
             alive.append(m)
     print(f"{module}: {len(found) - len(alive)} of {len(found)} survivors now killed")
 
@@ -338,13 +350,15 @@ def main(argv=None) -> int:
                         help="re-run the survivors recorded in SESSIONS with today's tests")
     parser.add_argument("--full", action="store_true",
                         help="with --recheck: the module's whole covering files (FULL)")
+    parser.add_argument("--timeouts", action="store_true",
+                        help="with --recheck: also re-run the mutants that timed out")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds per mutant")
     args = parser.parse_args(argv)
     global TIMEOUT
     TIMEOUT = args.timeout
     if args.recheck:
         for module in args.modules:
-            recheck(module, args.recheck, args.full)
+            recheck(module, args.recheck, args.full, args.timeouts)
         return 0
     if args.list:
         for m, t in MODULES.items():
