@@ -85,3 +85,16 @@ def test_clipping_in_one_channel_and_at_the_level_itself():
 @pytest.mark.parametrize("level, clipped", [(1.0, True), (0.99, False), (0.5, False)])
 def test_saturation_level_lies_between_0_99_and_1(level, clipped):
     assert clipped_pixels(np.array([[level]]))[0, 0] == clipped
+
+
+def test_a_frame_listed_twice_counts_twice(tmp_path):
+    """Equal leaves (same file, warp, weight) must not be one shared task: every partial sum
+    is added into in place, so a shared leaf would be added into by two merges."""
+    rng = np.random.default_rng(10)
+    paths, (p, q) = _write(tmp_path, [rng.uniform(0.0, 0.9, (4, 5)) for _ in range(2)])
+    for scheduler in ("sync", "threads"):
+        total, _, _ = dask.compute(
+            weighted_sum_graph([paths[0], paths[1]] * 2, [None] * 4, [0.5, 0.25] * 2, (4, 5)),
+            scheduler=scheduler,
+        )[0]
+        np.testing.assert_allclose(total, p + 0.5 * q, rtol=1e-6)

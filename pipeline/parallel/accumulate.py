@@ -51,8 +51,10 @@ def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape):
     weights are all zero are not read. Returns a Delayed yielding
     ``(sum, clipped_any_frame, decode_seconds)``.
     """
+    # pure=False: equal leaves (a frame listed twice with the same weight) stay separate
+    # tasks; a shared one would be added into, in place, by two merges
     level = [
-        dask.delayed(_warped_leaf, pure=True)(
+        dask.delayed(_warped_leaf, pure=False)(
             str(path), h, float(w) if np.ndim(w) == 0 else np.asarray(w), tuple(shape)
         )
         for path, h, w in zip(files, homographies, weights)
