@@ -320,8 +320,12 @@ def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = Fa
         with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
             work = Path(tmp)
             scratch_copy(work)
-            subprocess.run(["cosmic-ray", "apply", m["module_path"], m["operator_name"],
-                            str(m["occurrence"])], cwd=work, check=True, capture_output=True)
+            applied = subprocess.run(["cosmic-ray", "apply", m["module_path"],
+                                      m["operator_name"], str(m["occurrence"])], cwd=work,
+                                     capture_output=True, check=False)
+            if applied.returncode != 0:  # the code changed since the session: no such mutant
+                print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
+                continue
             try:
                 proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
                                       check=False, timeout=10 * TIMEOUT)
