@@ -111,3 +111,13 @@ def test_tile_and_overlap_bounds():
     for bad in (-1, True):
         with pytest.raises(InputError, match="overlap_px"):
             deconvolve_tiled(y, KERNEL, overlap_px=bad)
+
+
+def test_dask_channels_in_separate_chunks_keep_their_own_noise_levels():
+    import dask.array as da
+
+    y = _image((70, 60, 3), seed=3)
+    sigmas = [0.01, 0.2, 0.05]  # one plan entry per channel: a channel alone in a chunk
+    whole = dc.deconvolve(y, KERNEL, noise_sigma=sigmas)  # would be restored as channel 0
+    tiled = deconvolve_tiled(da.from_array(y, chunks=(70, 60, 1)), KERNEL, noise_sigma=sigmas)
+    np.testing.assert_allclose(tiled.compute(), whole, atol=1e-6)
