@@ -292,3 +292,12 @@ def test_targets_a_rounding_error_beyond_the_ends_are_accepted():
     for beyond in (12.5 - 5e-8, 12.7 + 5e-8):
         with pytest.raises(InputError, match="outside"):
             row_weights(p, [beyond])
+
+
+def test_whole_millimetre_windows_are_sweeps_too():
+    p = np.linspace(10.0, 14.0, 9)  # any unit linear in the image distance
+    for window in (1.0, 2.0):
+        w = row_weights(p, [12.0, 12.3], window_mm=window)
+        expected = np.stack([_interp_time_shares(p, t - window / 2, t + window / 2)
+                             for t in (12.0, 12.3)])
+        np.testing.assert_allclose(w, expected, atol=1e-4)

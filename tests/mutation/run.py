@@ -156,6 +156,7 @@ MODULES["core/weights.py"] = [  # the same tests, cheapest first (the CLI ones l
         "test_weights_validate_their_inputs",
         "test_row_windows_must_fit_inside_the_stack_at_both_ends",
         "test_targets_a_rounding_error_beyond_the_ends_are_accepted",
+        "test_whole_millimetre_windows_are_sweeps_too",
         "test_constant_speed_weights_single_frame_and_unsorted_duplicates",
         "test_full_ends_give_equal_weights_for_even_spacing",
         "test_discontinuous_full_range_equals_constant_speed",
