@@ -76,9 +76,10 @@ def test_clipping_in_one_channel_and_at_the_level_itself():
     image[2, 3, 2] = 1.0  # only the last one
     image[1, 2, 0] = SATURATION  # exactly at the level: clipped
     image[0, 3, 2] = SATURATION  # and in the last channel
+    image[2, 0, 0] = 1.0  # above the level in the first channel
     image[1, 0, 1] = np.nextafter(SATURATION, 0.0)  # just below: not
     expected = np.zeros((3, 4), bool)
-    expected[0, 1] = expected[2, 3] = expected[1, 2] = expected[0, 3] = True
+    expected[0, 1] = expected[2, 3] = expected[1, 2] = expected[0, 3] = expected[2, 0] = True
     np.testing.assert_array_equal(clipped_pixels(image), expected)
     np.testing.assert_array_equal(clipped_pixels(image[..., 1]), expected & [[0, 1, 0, 0]] * 3)
     grey = np.array([[SATURATION, np.nextafter(SATURATION, 0.0), 1.0]])
