@@ -238,3 +238,66 @@ def test_full_ends_give_equal_weights_for_even_spacing():
                                np.full(7, 1 / 7))
     with pytest.raises(InputError, match="ends"):
         constant_speed_weights([1.0, 2.0], ends="both")
+
+
+# ----------------------------------------------------------------------------- mutation kills
+def test_weights_validate_their_inputs():
+    nan = float("nan")
+    with pytest.raises(InputError, match="finite"):
+        constant_speed_weights([12.5, nan])
+    with pytest.raises(InputError, match="empty"):
+        constant_speed_weights([])
+    p = [12.5, 12.6, 12.7]
+    for bad in ([12.5, 12.6], [(12.5, 12.6, 12.7)], [(12.55,)], np.zeros((0, 2)),
+                np.full((1, 2, 2), 12.55)):
+        with pytest.raises(InputError, match="pairs"):
+            discontinuous_weights(p, bad, [1])
+    with pytest.raises(InputError, match="ranges_image_mm must be finite"):
+        discontinuous_weights(p, [(12.5, nan)], [1])
+    with pytest.raises(InputError, match="1 ranges, 2 fractions"):
+        discontinuous_weights(p, [(12.5, 12.6)], [1, 2])
+    with pytest.raises(InputError, match="2 ranges, 1 fractions"):
+        discontinuous_weights(p, [(12.5, 12.6), (12.6, 12.7)], [1])
+    for bad in ([nan], [-1.0], [1.0, 0.0]):
+        with pytest.raises(InputError, match="fractions must be finite and > 0"):
+            discontinuous_weights(p, [(12.5, 12.6)] * len(bad), bad)
+    with pytest.raises(InputError, match="outside must be"):
+        discontinuous_weights(p, [(12.5, 12.6)], [1], outside="none")
+    with pytest.raises(InputError, match=r"reaches 12\.75\.\.12\.8 mm, .* \[12\.5, 12\.7\] mm"):
+        row_weights(p[::-1], [12.6, 12.8, 12.75])
+    for bad in ([[12.6]], 12.6, [], [nan], [12.6, nan]):
+        with pytest.raises(InputError, match="row_positions_mm must be a non-empty 1-D"):
+            row_weights(p, bad)
+    for bad in (-0.01, float("inf"), nan, "0.1", None):
+        with pytest.raises(InputError, match="window_mm"):
+            row_weights(p, [12.6], window_mm=bad, outside="clamp")
+
+
+def test_row_windows_must_fit_inside_the_stack_at_both_ends():
+    p = [12.5, 12.6, 12.7]
+    for target in (12.51, 12.69):  # the target is inside, its +-0.02 window is not
+        with pytest.raises(InputError, match="outside"):
+            row_weights(p, [target], window_mm=0.04)
+        assert row_weights(p, [target], window_mm=0.02).shape == (1, 3)
+    # clamped, the part of the window beyond the last frame uses the last frame
+    w = row_weights(p, [12.69], window_mm=0.04, outside="clamp")
+    # [12.67, 12.7]: mean hat of 12.6 = 0.5 (0.3 + 0) * 0.03 / 0.04; of 12.7 the rest
+    np.testing.assert_allclose(w, [[0.0, 0.1125, 0.8875]], atol=1e-12)
+
+
+def test_targets_a_rounding_error_beyond_the_ends_are_accepted():
+    p = [12.5, 12.6, 12.7]  # tolerance 1e-9 of the largest position: 12.7 nm here
+    w = row_weights(p, [12.5 - 5e-9, 12.7 + 5e-9])
+    np.testing.assert_allclose(w, [[1, 0, 0], [0, 0, 1]], atol=1e-6)
+    for beyond in (12.5 - 5e-8, 12.7 + 5e-8):
+        with pytest.raises(InputError, match="outside"):
+            row_weights(p, [beyond])
+
+
+def test_whole_millimetre_windows_are_sweeps_too():
+    p = np.linspace(10.0, 14.0, 9)  # any unit linear in the image distance
+    for window in (1.0, 2.0):
+        w = row_weights(p, [12.0, 12.3], window_mm=window)
+        expected = np.stack([_interp_time_shares(p, t - window / 2, t + window / 2)
+                             for t in (12.0, 12.3)])
+        np.testing.assert_allclose(w, expected, atol=1e-4)

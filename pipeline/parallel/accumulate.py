@@ -74,7 +74,9 @@ def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape, *, l
     for lane in range(min(int(lanes), len(used))):
         partial = None
         for path, h, w in used[lane :: int(lanes)]:
-            partial = dask.delayed(_add_frame, pure=True)(partial, path, h, w, tuple(shape))
+            # pure=False: equal steps (a frame listed twice, first in two lanes) stay separate
+            # tasks; a shared one would be added into, in place, by two later steps
+            partial = dask.delayed(_add_frame, pure=False)(partial, path, h, w, tuple(shape))
         level.append(partial)
     while len(level) > 1:
         merged = [dask.delayed(_merge)(level[i], level[i + 1]) for i in range(0, len(level) - 1, 2)]

@@ -149,6 +149,73 @@ FULL: dict[str, list[str]] = {
     "tether/session.py": _TETHER_FULL,
     "core/deconvolve/rl.py": DECONVOLVE,
 }
+# ---- fast selections (helper mutW): weights, accumulate, dispatch, tiling ---------------------
+_WT = "tests/test_weights.py"
+MODULES["core/weights.py"] = [  # the same tests, cheapest first (the CLI ones last)
+    *(f"{_WT}::{t}" for t in (
+        "test_weights_validate_their_inputs",
+        "test_row_windows_must_fit_inside_the_stack_at_both_ends",
+        "test_targets_a_rounding_error_beyond_the_ends_are_accepted",
+        "test_whole_millimetre_windows_are_sweeps_too",
+        "test_constant_speed_weights_single_frame_and_unsorted_duplicates",
+        "test_full_ends_give_equal_weights_for_even_spacing",
+        "test_discontinuous_full_range_equals_constant_speed",
+        "test_discontinuous_errors", "test_row_weights_outside",
+        "test_row_weights_window_is_a_short_sweep",
+        "test_discontinuous_concentrates_on_the_ranges",
+        "test_full_ends_emulate_a_sweep_half_a_spacing_beyond_the_end_frames",
+        "test_row_weights_reproduce_each_rows_position",
+        "test_discontinuous_single_range_is_an_interpolated_sweep",
+        "test_constant_speed_weights_match_a_sampled_sweep",
+        "test_dof_errors", "test_dof_rows_csv_and_in_focus",
+        "test_dof_tilted_rows_focus_on_the_plane")),
+]
+FULL["core/weights.py"] = [_WT]
+_SH = "tests/test_stack_heart.py"
+MODULES["parallel/accumulate.py"] = [  # test_engine (34 s) only adds the CLI around it
+    f"{_SH}::test_weighted_sum_graph_equals_a_numpy_sum",
+    f"{_SH}::test_weighted_sum_graph_per_row_weights_and_identity_warps",
+    "tests/test_accumulate.py",
+]
+FULL["parallel/accumulate.py"] = [_SH, "tests/test_engine.py", "tests/test_accumulate.py"]
+_DC, _AS, _TL = "tests/test_deconvolve.py", "tests/test_deconvolve_asymmetric.py", \
+    "tests/test_tiling.py"
+MODULES["core/deconvolve/dispatch.py"] = [  # no sparse quality runs (2-4 s each)
+    *(f"{_DC}::{t}" for t in (
+        "test_bad_method_and_options_rejected", "test_non_finite_image_rejected",
+        "test_bad_kernel_rejected", "test_delta_kernel_returns_input",
+        "test_constant_image_stays_constant", "test_zero_image_and_zero_pixels",
+        "test_damped_rl_limits_are_plain_rl_and_no_update",
+        "test_wiener_is_exact_inverse_without_noise", "test_channels_are_independent[wiener]",
+        "test_channels_are_independent[rl]", "test_saturated_pixels_excluded[rl]",
+        "test_rl_negative_pixels_keep_nonnegative_output",
+        "test_zero_noise_and_spectral_zeros_improve[wiener]",
+        "test_zero_noise_and_spectral_zeros_improve[rl]",
+        "test_natural_prior_beats_white_prior")),
+    *(f"{_AS}::{t}" for t in (
+        "test_methods_undo_a_one_sided_blur_and_the_flip_does_not[wiener]",
+        "test_methods_undo_a_one_sided_blur_and_the_flip_does_not[rl]",
+        "test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[wiener]",
+        "test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[rl]",
+        "test_wiener_prior_fit_subtracts_the_whole_noise_term")),
+    f"{_TL}::test_numpy_input_returns_numpy_and_2d",
+    f"{_TL}::test_sparse_is_never_tiled_so_it_equals_the_untiled_result",
+    "tests/test_deconvolve_dispatch.py",
+]
+FULL["core/deconvolve/dispatch.py"] = [*DECONVOLVE, _TL, "tests/test_deconvolve_dispatch.py"]
+MODULES["parallel/tiling.py"] = [
+    *(f"{_TL}::{t}" for t in (
+        "test_bad_tile_size_and_nan_rejected", "test_numpy_input_returns_numpy_and_2d",
+        "test_operator_wider_than_frame_uses_one_tile",
+        "test_sparse_is_never_tiled_so_it_equals_the_untiled_result")),
+    f"{_AS}::test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[wiener]",
+    f"{_AS}::test_tiles_with_a_one_sided_kernel_equal_the_whole_frame[rl]",
+    "tests/test_tiling_geometry.py",
+    f"{_AS}::test_tiles_honour_the_censored_mask[rl]",
+    f"{_TL}::test_tiled_equals_untiled_on_uneven_chunks",
+]
+FULL["parallel/tiling.py"] = [_TL, _AS, "tests/test_tiling_geometry.py"]
+# ---- end of mutW's selections ----------------------------------------------------------------
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
 os.environ.setdefault("FLEXDOF_SHARED_DATA", str(ROOT.parent / "shared" / "data"))
@@ -228,38 +295,57 @@ def score(module: str, work: Path, sessions: Path) -> dict:
     return counts
 
 
-def survivors(session: Path) -> list[dict]:
+def survivors(session: Path, timeouts: bool = False) -> list[dict]:
+    """The surviving mutants of a session; with ``timeouts`` also those "killed" by the
+    timeout (a machine that pauses niced jobs for a benchmark times out healthy runs)."""
     dump = subprocess.run(["cosmic-ray", "dump", str(session)], check=True,
                           capture_output=True, text=True).stdout
     out = []
     for line in dump.splitlines():
         job, result = json.loads(line)
-        if result is not None and result.get("test_outcome") == "survived":
+        if result is not None and (result.get("test_outcome") == "survived" or (
+                timeouts and result.get("output") == "timeout")):
             out.append(job["mutations"][0])
     return out
 
 
-def recheck(module: str, sessions: Path, full: bool = False) -> None:
-    """Re-run the survivors of ``module``'s session against the current tests."""
+def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = False) -> None:
+    """Re-run the survivors of ``module``'s session against the current tests (with
+    ``timeouts``: also the mutants it timed out, allowed 10 times the timeout)."""
     session = sessions / f"{module.replace('/', '_')}.sqlite"
     table = FULL if full and module in FULL else MODULES
     tests = present(table[module], ROOT)
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
     alive = []
-    found = survivors(session)
+    found = survivors(session, timeouts)
     for m in found:
         with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
             work = Path(tmp)
             scratch_copy(work)
-            subprocess.run(["cosmic-ray", "apply", m["module_path"], m["operator_name"],
-                            str(m["occurrence"])], cwd=work, check=True, capture_output=True)
-            proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True, check=False)
+            source = (work / m["module_path"]).read_bytes()
+            applied = subprocess.run(["cosmic-ray", "apply", m["module_path"],
+                                      m["operator_name"], str(m["occurrence"])], cwd=work,
+                                     capture_output=True, check=False)
+            unchanged = (work / m["module_path"]).read_bytes() == source
+            if applied.returncode != 0 or unchanged:  # the code changed since the session
+                # (cosmic-ray apply exits 0 without changing anything when the occurrence is gone)
+                print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
+                continue
+            try:
+                proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
+                                      check=False, timeout=10 * TIMEOUT)
+                code = proc.returncode
+            except subprocess.TimeoutExpired:
+                code = "timeout"
         line = m["start_pos"][0]
         src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
-        verdict = "KILLED" if proc.returncode == 1 else "SURVIVED"
+        # 1: a test failed, 2: collection failed (the mutant breaks an import);
+        # 3-5 are pytest's own errors (a bad node id): never a kill
+        verdict = {0: "SURVIVED", 1: "KILLED", 2: "KILLED", "timeout": "TIMEOUT"}.get(code,
+                                                                                   "ERROR")
         print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
               flush=True)
-        if verdict == "SURVIVED":
+        if verdict in ("SURVIVED", "ERROR"):  # a hang at 10x the timeout counts as a kill
             alive.append(m)
     print(f"{module}: {len(found) - len(alive)} of {len(found)} survivors now killed")
 
@@ -273,13 +359,15 @@ def main(argv=None) -> int:
                         help="re-run the survivors recorded in SESSIONS with today's tests")
     parser.add_argument("--full", action="store_true",
                         help="with --recheck: the module's whole covering files (FULL)")
+    parser.add_argument("--timeouts", action="store_true",
+                        help="with --recheck: also re-run the mutants that timed out")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds per mutant")
     args = parser.parse_args(argv)
     global TIMEOUT
     TIMEOUT = args.timeout
     if args.recheck:
         for module in args.modules:
-            recheck(module, args.recheck, args.full)
+            recheck(module, args.recheck, args.full, args.timeouts)
         return 0
     if args.list:
         for m, t in MODULES.items():

@@ -1,0 +1,104 @@
+"""``pipeline.parallel.accumulate`` details against independent computations (issue 11):
+warped leaves against a shifted numpy array, per-row colour weights against a numpy
+broadcast, the decode-time sum against a counting clock, the clipping mask on one
+channel and at the level itself."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import dask
+import numpy as np
+import pytest
+
+from pipeline.io.read import read_frame
+from pipeline.io.write import write_image
+from pipeline.parallel import accumulate
+from pipeline.parallel.accumulate import SATURATION, clipped_pixels, weighted_sum_graph
+
+
+def _write(tmp_path, arrays):
+    paths, decoded = [], []
+    for i, a in enumerate(arrays):
+        path = tmp_path / f"g{i}.tif"
+        write_image(path, a.astype(np.float32), encoding="float32")
+        paths.append(path)
+        decoded.append(read_frame(path).astype(np.float64))
+    return paths, decoded
+
+
+def test_a_translation_warps_each_frame_before_weighting(tmp_path):
+    rng = np.random.default_rng(7)
+    shape = (12, 15)
+    paths, frames = _write(tmp_path, [rng.uniform(0.0, 0.9, shape) for _ in range(3)])
+    shifts = [(0, 0), (2, 1), (1, 3)]  # (rows, cols) moved down/right on the reference
+    homographies = [np.array([[1.0, 0, dc], [0, 1.0, dr], [0, 0, 1]]) for dr, dc in shifts]
+    weights = [0.5, 0.2, 0.3]
+    total, _, _ = dask.compute(
+        weighted_sum_graph(paths, homographies, weights, shape), scheduler="sync"
+    )[0]
+    ref = np.zeros(shape)
+    for (dr, dc), w, f in zip(shifts, weights, frames):
+        ref[dr:, dc:] += w * f[: shape[0] - dr, : shape[1] - dc]  # out(y) = frame(y - d)
+    np.testing.assert_allclose(total[3:, 3:], ref[3:, 3:], rtol=1e-5, atol=1e-6)
+
+
+def test_per_row_weights_on_colour_frames(tmp_path):
+    rng = np.random.default_rng(8)
+    shape = (7, 4)
+    paths, frames = _write(tmp_path, [rng.uniform(0.0, 0.9, (*shape, 3)) for _ in range(3)])
+    rows = rng.uniform(0.0, 1.0, (3, shape[0]))
+    total, _, _ = dask.compute(
+        weighted_sum_graph(paths, [None] * 3, list(rows), shape), scheduler="sync"
+    )[0]
+    ref = np.zeros((*shape, 3))
+    for r, f in zip(rows, frames):
+        for i in range(shape[0]):
+            ref[i] += r[i] * f[i]
+    np.testing.assert_allclose(total, ref, rtol=1e-5, atol=1e-6)
+
+
+def test_decode_seconds_are_summed_over_the_frames_read(tmp_path, monkeypatch):
+    ticks = iter(range(1000))  # a clock of this module only, one tick per reading
+    monkeypatch.setattr(accumulate, "time", SimpleNamespace(perf_counter=lambda: next(ticks)))
+    rng = np.random.default_rng(9)
+    paths, _ = _write(tmp_path, [rng.uniform(0.0, 0.9, (5, 6)) for _ in range(6)])
+    weights = [0.1, 0.0, 0.2, 0.3, 0.1, 0.3]  # frame 1 is never read
+    _, _, read_s = dask.compute(
+        weighted_sum_graph(paths, [None] * 6, weights, (5, 6)), scheduler="sync"
+    )[0]
+    assert read_s == 5.0  # one tick per read, five frames read
+
+
+def test_clipping_in_one_channel_and_at_the_level_itself():
+    image = np.full((3, 4, 3), 0.5)
+    image[0, 1, 1] = 1.0  # only the middle channel
+    image[2, 3, 2] = 1.0  # only the last one
+    image[1, 2, 0] = SATURATION  # exactly at the level: clipped
+    image[0, 3, 2] = SATURATION  # and in the last channel
+    image[2, 0, 0] = 1.0  # above the level in the first channel
+    image[1, 0, 1] = np.nextafter(SATURATION, 0.0)  # just below: not
+    expected = np.zeros((3, 4), bool)
+    expected[0, 1] = expected[2, 3] = expected[1, 2] = expected[0, 3] = expected[2, 0] = True
+    np.testing.assert_array_equal(clipped_pixels(image), expected)
+    np.testing.assert_array_equal(clipped_pixels(image[..., 1]), expected & [[0, 1, 0, 0]] * 3)
+    grey = np.array([[SATURATION, np.nextafter(SATURATION, 0.0), 1.0]])
+    np.testing.assert_array_equal(clipped_pixels(grey), [[True, False, True]])
+
+
+@pytest.mark.parametrize("level, clipped", [(1.0, True), (0.99, False), (0.5, False)])
+def test_saturation_level_lies_between_0_99_and_1(level, clipped):
+    assert clipped_pixels(np.array([[level]]))[0, 0] == clipped
+
+
+def test_a_frame_listed_twice_counts_twice(tmp_path):
+    """Equal leaves (same file, warp, weight) must not be one shared task: every partial sum
+    is added into in place, so a shared leaf would be added into by two merges."""
+    rng = np.random.default_rng(10)
+    paths, (p, q) = _write(tmp_path, [rng.uniform(0.0, 0.9, (4, 5)) for _ in range(2)])
+    for scheduler in ("sync", "threads"):
+        total, _, _ = dask.compute(
+            weighted_sum_graph([paths[0], paths[1]] * 2, [None] * 4, [0.5, 0.25] * 2, (4, 5)),
+            scheduler=scheduler,
+        )[0]
+        np.testing.assert_allclose(total, p + 0.5 * q, rtol=1e-6)

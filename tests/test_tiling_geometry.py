@@ -1,0 +1,124 @@
+"""``pipeline.parallel.tiling``'s tile geometry (issue 11): the tiles handed to ``restore``
+against the ones worked out by hand from the tile size, the overlap and the frame edges
+(``boundary="none"``: no overlap beyond the frame), and when a frame is restored whole."""
+
+from __future__ import annotations
+
+import logging
+import threading
+
+import numpy as np
+import pytest
+
+from pipeline.core import deconvolve as dc
+from pipeline.core.deconvolve.wiener import TAPER_PX
+from pipeline.errors import InputError
+from pipeline.parallel import tiling
+from pipeline.parallel.tiling import deconvolve_tiled
+
+KERNEL = np.zeros((5, 5))
+KERNEL[1:4, 2] = [0.2, 0.5, 0.3]
+
+
+def _extents(length, tile, depth):
+    """Tile extents along one axis: chunks of ``tile`` (the last shorter), each grown by
+    ``depth`` on the sides that have a neighbour."""
+    starts = list(range(0, length, tile))
+    sizes = [min(tile, length - s) for s in starts]
+    return [n + depth * ((i > 0) + (i < len(sizes) - 1)) for i, n in enumerate(sizes)]
+
+
+def _tiles(rows, cols, tile, depth):
+    return sorted((r, c) for r in _extents(rows, tile, depth) for c in _extents(cols, tile, depth))
+
+
+@pytest.fixture
+def calls(monkeypatch):
+    """The (shape, main thread?) of every ``restore`` call."""
+    seen = []
+    real = dc.restore
+
+    def spy(y, p, censored=None):
+        seen.append((np.shape(y), threading.current_thread() is threading.main_thread()))
+        return real(y, p, censored)
+
+    monkeypatch.setattr(tiling.dc, "restore", spy)
+    return seen
+
+
+def _image(shape, seed=0):
+    return np.random.default_rng(seed).uniform(0.2, 0.8, shape)
+
+
+def test_small_tiles_are_raised_to_the_minimum_and_grown_by_the_overlap(calls, caplog):
+    y = _image((150, 140, 2))
+    with caplog.at_level(logging.INFO, logger="pipeline.parallel.tiling"):
+        out = deconvolve_tiled(y, KERNEL, tile_px=10, overlap_px=5, noise_sigma=0.01)
+    assert "tile_px 10 raised to 64 px" in caplog.text
+    assert out.shape == y.shape and out.dtype == np.float64
+    assert sorted((s[0], s[1]) for s, _ in calls) == _tiles(150, 140, 64, 5)
+    assert {s[2] for s, _ in calls} == {2}  # channels are never split
+    caplog.clear()
+    calls.clear()
+    with caplog.at_level(logging.INFO, logger="pipeline.parallel.tiling"):
+        deconvolve_tiled(y[..., 0], KERNEL, tile_px=64, overlap_px=0, noise_sigma=0.01)
+    assert "raised" not in caplog.text
+    assert sorted(s for s, _ in calls) == _tiles(150, 140, 64, 0)
+
+
+def test_an_overlap_as_wide_as_an_axis_makes_one_tile_along_it(calls):
+    y = _image((64, 100))
+    deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=100, noise_sigma=0.01)
+    assert [s for s, _ in calls] == [(64, 100)]
+    calls.clear()
+    deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=36, noise_sigma=0.01)
+    assert sorted(s for s, _ in calls) == [(64, 72), (64, 100)]  # 64 + 36, 36 + 36
+
+
+def test_frames_up_to_the_whole_frame_limit_are_restored_whole(calls, monkeypatch):
+    y = _image((300, 480), seed=1)
+    p = dc.plan(y, KERNEL, noise_sigma=0.1)
+    tile = tiling.TILE_OVER_REACH * (2 * p.depth + TAPER_PX)  # times (reach + taper)
+    assert 0 < p.depth and tile < 300 and 480 % tile >= p.depth and 300 - tile >= p.depth
+    monkeypatch.setattr(tiling, "WHOLE_FRAME_PX", 300 * 480)
+    whole = deconvolve_tiled(y, KERNEL, tile_px=64, noise_sigma=0.1)
+    assert calls == [((300, 480), True)]  # in this thread, no dask
+    calls.clear()
+    monkeypatch.setattr(tiling, "WHOLE_FRAME_PX", 300 * 480 - 1)
+    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, noise_sigma=0.1)
+    assert sorted(s for s, _ in calls) == _tiles(300, 480, tile, p.depth)
+    np.testing.assert_allclose(tiled, whole, atol=1e-4)
+
+
+def test_censored_pixels_are_tiled_with_the_image():
+    y = _image((130, 120, 3), seed=2)
+    censored = np.zeros((130, 120), bool)
+    censored[::7, ::5] = True
+    y[censored] = 0.95
+    whole = dc.deconvolve(y, KERNEL, noise_sigma=0.01, saturation=0.9, censored=censored)
+    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01,
+                             saturation=0.9, censored=censored)
+    np.testing.assert_allclose(tiled, whole, atol=1e-4)
+    grey = deconvolve_tiled(y[..., 1], KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01,
+                            saturation=0.9, censored=censored)
+    np.testing.assert_allclose(grey, whole[..., 1], atol=1e-4)
+
+
+def test_tile_and_overlap_bounds():
+    y = _image((20, 20))
+    for tile_px, overlap_px in ((1, None), (64, 0)):  # both accepted
+        assert deconvolve_tiled(y, KERNEL, tile_px=tile_px, overlap_px=overlap_px,
+                                noise_sigma=0.01).shape == y.shape
+    for bad in (-1, True):
+        with pytest.raises(InputError, match="overlap_px"):
+            deconvolve_tiled(y, KERNEL, overlap_px=bad)
+
+
+def test_dask_channels_in_separate_chunks_keep_their_own_noise_levels():
+    import dask.array as da
+
+    y = _image((70, 60, 3), seed=3)
+    sigmas = [0.01, 0.2, 0.05]  # one plan entry per channel: a channel alone in a chunk
+    whole = dc.deconvolve(y, KERNEL, noise_sigma=sigmas)  # would be restored as channel 0
+    tiled = deconvolve_tiled(da.from_array(y, chunks=(70, 60, 1)), KERNEL, noise_sigma=sigmas)
+    np.testing.assert_allclose(tiled.compute(), whole, atol=1e-6)
