@@ -67,7 +67,7 @@ def fine_steps(plan, camera, n=64):
     if np.ptp(camera.motion.image_distances_mm) == 0:
         return plan
     bands = tuple(
-        dataclasses.replace(b, steps=simulate._steps(b.profile, camera.reference_mm, n))
+        dataclasses.replace(b, steps=simulate.planner._steps(b.profile, camera.reference_mm, n))
         for b in plan.bands
     )
     return dataclasses.replace(plan, bands=bands)
