@@ -342,6 +342,13 @@ def _partition(present, lo, hi, dist, tol, *, integer: bool):
     return parts, worst + gap, np.array(xs)
 
 
+def _near(scene: Scene, q0: int, q1: int) -> np.ndarray:
+    """The inverse depths present in rows ``[q0, q1)`` (those that blur into a band's rows)."""
+    return np.unique(
+        np.concatenate([1.0 / s.depth_mm[q0:q1][s.alpha[q0:q1] > 0] for s in scene.surfaces])
+    )
+
+
 def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
     """Present inverse depths split into groups of surfaces whose depth ranges overlap.
 
@@ -362,11 +369,12 @@ def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
     return [present[(present >= lo) & (present <= hi)] for lo, hi in merged]
 
 
-def _layers(groups, profile, cache: _KernelCache, tol, *, hat: bool):
+def _layers(groups, near, profile, cache: _KernelCache, tol, *, hat: bool):
     """Depth layers of each group (:func:`_partition` in inverse depth by ``kernel_error``).
 
     Returns the layers, the largest box-layer error and, for hat-function layers (``hat``),
-    the check depths ``[(d, a, b), ...]`` of :func:`_hat_split` (empty for box layers).
+    the check depths ``[(d, a, b), ...]`` of :func:`_hat_split` over the inverse depths
+    ``near`` (those whose blur reaches the band's rows; empty for box layers).
     """
 
     def dist(a, b):
@@ -383,7 +391,8 @@ def _layers(groups, profile, cache: _KernelCache, tol, *, hat: bool):
         parts, err, samples = _partition(present, lo, hi, dist, tol, integer=False)
         worst = max(worst, err)
         if hat:
-            parts, group_checks = _hat_split(parts, samples, present, blend, tol)
+            mine = present[np.isin(present, near)]
+            parts, group_checks = _hat_split(parts, samples, mine, blend, tol)
             checks += group_checks
         for end, rep in parts:
             layers.append(Layer(start, end, rep, g))
@@ -402,13 +411,14 @@ def _hat_split(parts, samples, present, blend, tol):
     ``(1 - t) K(a) + t K(b)``, ``t = (d - a) / (b - a)``; its error ``blend(d, a, b)`` is
     0 at the ends but need not be largest in the middle: where a window sweeps through
     focus the kernel changes fastest near one end (a rolling capture with depth down the
-    rows had 0.0045 next to an end, 0.0029 at the middle). It is checked at every sample
-    of :func:`_partition` inside ``(a, b)`` (neighbours within about ``tol / 3``, so
-    between two of them the blend is within about ``tol / 3`` of theirs) and at the scene
-    depth nearest the middle; while the worst exceeds ``tol`` it becomes a representative
-    and both halves are checked again. Returns the parts ``[(end, rep), ...]`` (a split
-    part's new boundaries halfway between its representatives) and the worst check depth
-    of each interval with scene depths, ``[(d, a, b), ...]``.
+    rows had 0.0045 next to an end, 0.0029 at the middle). It is checked at the scene
+    depths nearest the middle and nearest each sample of :func:`_partition` inside
+    ``(a, b)`` (neighbours within about ``tol / 3``: the samples follow the kernel's
+    changes; a depth with no pixel is not checked); while the worst exceeds ``tol`` it
+    becomes a representative (exact there) and both halves are checked again. Returns the
+    parts ``[(end, rep), ...]`` (a split part's new boundaries halfway between its
+    representatives) and the worst check depth of each interval with scene depths,
+    ``[(d, a, b), ...]``.
     """
     reps = [rep for _, rep in parts]
     added, checks = [], []
@@ -418,8 +428,10 @@ def _hat_split(parts, samples, present, blend, tol):
         inside = present[(present > a) & (present < b)]
         if not inside.size:
             continue
-        points = {float(inside[np.argmin(np.abs(inside - 0.5 * (a + b)))])}
-        points.update(samples[np.searchsorted(samples, a, "right") : np.searchsorted(samples, b)])
+        targets = [0.5 * (a + b), *samples[(samples > a) & (samples < b)]]
+        j = np.searchsorted(inside, targets).clip(1, inside.size - 1) if inside.size > 1 else 0
+        nearer = np.abs(inside[j - 1] - targets) < np.abs(inside[j] - targets)
+        points = {float(d) for d in np.where(nearer, inside[j - 1], inside[j])}
         errors = {d: blend(d, a, b) for d in points}
         d = max(errors, key=errors.get)
         if errors[d] > tol:
@@ -438,13 +450,14 @@ def _hat_split(parts, samples, present, blend, tol):
     return split, checks
 
 
-def _hat_error(groups, layers, checks, steps, cache: _KernelCache, shape) -> float:
+def _hat_error(groups, near, layers, checks, steps, cache: _KernelCache, shape) -> float:
     """Estimated error of the hat-function layers as rendered (``render._hat``).
 
     At the check depth of each interval between neighbouring representatives (``checks``,
     the worst of :func:`_hat_split`) and at the depths beyond a group's end
-    representatives (which keep the end kernel), the image error of the interpolated
-    kernel, summed over the sub-steps as they are rendered:
+    representatives (which keep the end kernel; of the inverse depths ``near`` the band's
+    rows), the image error of the interpolated kernel, summed over the sub-steps as they
+    are rendered:
     ``|| sum_s w_s (K_s(D) - (1 - t) K_s(a) - t K_s(b)) exp(-i w . delta_s) ||`` with each
     step's grid kernel (pitch x scale) and its displacement ``delta_s = (scale_s - 1) r``
     at the image's RMS radius ``r``.
@@ -464,6 +477,7 @@ def _hat_error(groups, layers, checks, steps, cache: _KernelCache, shape) -> flo
 
     worst = 0.0
     for g, present in enumerate(groups):
+        present = present[np.isin(present, near)]
         reps = [layer.inv_rep for layer in layers if layer.group == g]
         for end, beyond in (
             (reps[0], present[present < reps[0]]),
@@ -779,10 +793,14 @@ def plan(
         occlusion = n_edge > 0
     p_ref = camera.reference_mm
     groups = _groups(scene, present)
+    # rows whose pixels reach a band's rows: the largest blur plus the magnification shift
+    moved = 0.5 * math.hypot(rows, cols) * float(np.max(np.abs(p_all / camera.reference_mm - 1)))
+    reach = size // 2 + math.ceil(moved) + 1
     bands, layer_sq, mag_sq, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
     for r0, r1, prof in band_specs:
         cache.clear()  # a fresh cache per band: memory does not grow with the rows
-        layers, err, checks = _layers(groups, prof, cache, tolerance, hat=not occlusion)
+        near = _near(scene, max(0, r0 - reach), r1 + reach)
+        layers, err, checks = _layers(groups, near, prof, cache, tolerance, hat=not occlusion)
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
                 prof, layers, lens, model, spectra, p_ref, (rows, cols), tolerance
@@ -791,7 +809,7 @@ def plan(
             steps, m_err, m_app, n = _forced_steps(prof, p_ref, magnification_steps)
         mag_applied, mag_steps = mag_applied or m_app, max(mag_steps, n)
         if not occlusion:  # else box layers (occlusion compositing): _layers' own error
-            err = _hat_error(groups, layers, checks, steps, cache, (rows, cols))
+            err = _hat_error(groups, near, layers, checks, steps, cache, (rows, cols))
         # each band's estimate bounds the RMS error of its rows: the image's RMS error is
         # at most their row-weighted RMS (not their maximum, 2x looser over a rolling sweep)
         layer_sq += (r1 - r0) * err**2
