@@ -171,6 +171,51 @@ def _depth(inv: float) -> float:
     return math.inf if inv <= 0 else 1.0 / inv
 
 
+def _mean_power(shape: tuple[int, int]) -> float:
+    """Mean of ``1 / |w|^2`` over the non-zero frequencies of a ``shape`` grid (w in cycles/px)."""
+    fy = sfft.fftfreq(shape[0])[:, None]
+    fx = sfft.fftfreq(shape[1])[None, :]
+    total = 0.0
+    for i in range(0, shape[0], 256):  # blocks of rows: a full-sensor grid stays small
+        w2 = fy[i : i + 256] ** 2 + fx**2
+        if i == 0:
+            w2[0, 0] = math.inf
+        total += float(np.sum(1.0 / w2))
+    return total / (shape[0] * shape[1] - 1)
+
+
+def _finite_scene_factor(shape: tuple[int, int], n: int) -> float:
+    """Image error of a ``shape`` scene per unit :func:`kernel_error` on the ``n x n`` grid.
+
+    Parameters
+    ----------
+    shape : tuple of int
+        The scene's rows and columns.
+    n : int
+        The grid :func:`kernel_error` is measured on (``REFERENCE_GRID`` or larger).
+
+    Returns
+    -------
+    float
+        ``sqrt(mean_n(1/|w|^2) / mean_shape(1/|w|^2))``: 1.31 for 16x32 px, 1.18 for
+        48x64, 1 for 256x256, 0.84 for 2592x1944.
+
+    Notes
+    -----
+    ``kernel_error`` weighs each frequency of the ``n x n`` grid by a 1/f image of unit
+    RMS contrast there: ``|F(w)|^2 = S(w) / sum_n S``, ``S = 1/|w|^2``. The error of a
+    kernel change ``dK`` on a ``r x c`` scene with the same 1/f statistics and unit RMS
+    contrast over its own pixels is ``sum_rc |dK|^2 S / sum_rc S``; both sums sample one
+    smooth ``|dK|^2 S`` density at ``n^2`` or ``r c`` frequencies, so the squared ratio is
+    ``(sum_n S / n^2) / (sum_rc S / (r c))``. A small scene's contrast lacks the low
+    frequencies below ``1 / size`` (its mean), so the same kernel change is a larger part
+    of it: estimates measured on the 256 px grid were low by this factor on the reference
+    suite's 16x32 and 48x64 px scenes. A scene larger than the grid has more contrast at
+    low frequencies, which blur does not change: the factor is below 1.
+    """
+    return math.sqrt(_mean_power((n, n)) / _mean_power(shape))
+
+
 def _present_inverse_depths(scene: Scene, lens: Lens) -> np.ndarray:
     values = []
     for s in scene.surfaces:
@@ -263,8 +308,9 @@ def _partition(present, lo, hi, dist, tol, *, integer: bool):
     monotonically between neighbouring samples). An interval is also split when its ends
     agree but its middle does not: a kernel can turn back (a window sweeping through
     focus blurs depths on either side alike; a rolling-shutter row whose whole depth
-    range was one layer rendered 0.22 off the reference). Returns ``[(end, rep), ...]``
-    and the largest estimated error.
+    range was one layer rendered 0.22 off the reference). Returns ``[(end, rep), ...]``,
+    the largest estimated error and the sorted samples (neighbours within about ``tol / 3``
+    wherever scene values lie between them).
     """
     samples = {lo, hi}
     stack, gap = [(lo, hi)], 0.0
@@ -298,7 +344,14 @@ def _partition(present, lo, hi, dist, tol, *, integer: bool):
         if k >= present.size:
             break
         i = max(int(np.searchsorted(xs, present[k], side="right")) - 1, e + 1)
-    return parts, worst + gap
+    return parts, worst + gap, np.array(xs)
+
+
+def _near(scene: Scene, q0: int, q1: int) -> np.ndarray:
+    """The inverse depths present in rows ``[q0, q1)`` (those that blur into a band's rows)."""
+    return np.unique(
+        np.concatenate([1.0 / s.depth_mm[q0:q1][s.alpha[q0:q1] > 0] for s in scene.surfaces])
+    )
 
 
 def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
@@ -321,30 +374,98 @@ def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
     return [present[(present >= lo) & (present <= hi)] for lo, hi in merged]
 
 
-def _layers(groups, profile, cache: _KernelCache, tol):
+def _layers(groups, near, profile, cache: _KernelCache, tol, *, hat: bool):
+    """Depth layers of each group (:func:`_partition` in inverse depth by ``kernel_error``).
+
+    Returns the layers, the largest box-layer error and, for hat-function layers (``hat``),
+    the check depths ``[(d, a, b), ...]`` of :func:`_hat_split` over the inverse depths
+    ``near`` (those whose blur reaches the band's rows; empty for box layers).
+    """
+
     def dist(a, b):
         return cache.spectra.error(cache.spectrum(a, profile) - cache.spectrum(b, profile))
 
-    layers, start, worst = [], -math.inf, 0.0
+    def blend(d, a, b):
+        t = (d - a) / (b - a)
+        k = cache.spectrum(d, profile) - (1 - t) * cache.spectrum(a, profile)
+        return cache.spectra.error(k - t * cache.spectrum(b, profile))
+
+    layers, start, worst, checks = [], -math.inf, 0.0, []
     for g, present in enumerate(groups):
         lo, hi = float(present[0]), float(present[-1])
-        parts, err = _partition(present, lo, hi, dist, tol, integer=False)
+        parts, err, samples = _partition(present, lo, hi, dist, tol, integer=False)
         worst = max(worst, err)
+        if hat:
+            mine = present[np.isin(present, near)]
+            parts, group_checks = _hat_split(parts, samples, mine, blend, tol)
+            checks += group_checks
         for end, rep in parts:
             layers.append(Layer(start, end, rep, g))
             start = end
-    return tuple(layers), worst
+    if len(layers) > MAX_LAYERS:
+        raise InputError(
+            f"tolerance {tol:g} needs more than {MAX_LAYERS} layers; raise the tolerance"
+        )
+    return tuple(layers), worst, checks
 
 
-def _hat_error(groups, layers, steps, cache: _KernelCache, shape) -> float:
+def _hat_split(parts, samples, present, blend, tol):
+    """Add representatives until the hat-function blend is within ``tol`` between each two.
+
+    A pixel at inverse depth ``d`` between representatives ``a < b`` is rendered with
+    ``(1 - t) K(a) + t K(b)``, ``t = (d - a) / (b - a)``; its error ``blend(d, a, b)`` is
+    0 at the ends but need not be largest in the middle: where a window sweeps through
+    focus the kernel changes fastest near one end (a rolling capture with depth down the
+    rows had 0.0045 next to an end, 0.0029 at the middle). It is checked at the scene
+    depths nearest the middle and nearest each sample of :func:`_partition` inside
+    ``(a, b)`` (neighbours within about ``tol / 3``: the samples follow the kernel's
+    changes; a depth with no pixel is not checked); while the worst exceeds ``tol`` it
+    becomes a representative (exact there) and both halves are checked again. Returns the
+    parts ``[(end, rep), ...]`` (a split part's new boundaries halfway between its
+    representatives) and the worst check depth of each interval with scene depths,
+    ``[(d, a, b), ...]``.
+    """
+    reps = [rep for _, rep in parts]
+    added, checks = [], []
+    stack = list(itertools.pairwise(reps))
+    while stack:
+        a, b = stack.pop()
+        inside = present[(present > a) & (present < b)]
+        if not inside.size:
+            continue
+        targets = [0.5 * (a + b), *samples[(samples > a) & (samples < b)]]
+        j = np.searchsorted(inside, targets).clip(1, inside.size - 1) if inside.size > 1 else 0
+        nearer = np.abs(inside[j - 1] - targets) < np.abs(inside[j] - targets)
+        points = {float(d) for d in np.where(nearer, inside[j - 1], inside[j])}
+        errors = {d: blend(d, a, b) for d in points}
+        d = max(errors, key=errors.get)
+        if errors[d] > tol:
+            added.append(d)
+            stack += [(a, d), (d, b)]
+        else:
+            checks.append((d, a, b))
+    if not added:
+        return parts, checks
+    all_reps = np.array(sorted(reps + added))
+    split, start = [], -math.inf
+    for end, _ in parts:
+        mine = all_reps[(all_reps > start) & (all_reps <= end)]
+        split += list(zip([*(0.5 * (mine[1:] + mine[:-1])), end], mine))
+        start = end
+    return split, checks
+
+
+def _hat_error(groups, near, layers, checks, steps, cache: _KernelCache, shape) -> float:
     """Estimated error of the hat-function layers as rendered (``render._hat``).
 
-    At the present depth nearest the middle between each two neighbouring representatives
-    (and at the depths beyond a group's end representatives, which keep the end kernel),
-    the image error of the interpolated kernel, summed over the sub-steps as they are
-    rendered: ``|| sum_s w_s (K_s(D) - (1 - t) K_s(a) - t K_s(b)) exp(-i w . delta_s) ||``
-    with each step's grid kernel (pitch x scale) and its displacement ``delta_s =
-    (scale_s - 1) r`` at the image's RMS radius ``r``.
+    At the check depth of each interval between neighbouring representatives (``checks``,
+    the worst of :func:`_hat_split`) and at the depths beyond a group's end
+    representatives (which keep the end kernel; of the inverse depths ``near`` the band's
+    rows), the image error of the interpolated kernel, summed over the sub-steps as they
+    are rendered:
+    ``|| sum_s w_s (K_s(D) - (1 - t) K_s(a) - t K_s(b)) exp(-i w . delta_s) ||`` with each
+    step's grid kernel (pitch x scale) and its displacement ``delta_s = (scale_s - 1) r``
+    at the image's RMS radius ``r``.
     """
     spectra = cache.spectra
     radius = np.array([shape[1], shape[0]]) / math.sqrt(12)
@@ -361,6 +482,7 @@ def _hat_error(groups, layers, steps, cache: _KernelCache, shape) -> float:
 
     worst = 0.0
     for g, present in enumerate(groups):
+        present = present[np.isin(present, near)]
         reps = [layer.inv_rep for layer in layers if layer.group == g]
         for end, beyond in (
             (reps[0], present[present < reps[0]]),
@@ -369,13 +491,9 @@ def _hat_error(groups, layers, steps, cache: _KernelCache, shape) -> float:
             if beyond.size:
                 far = beyond[0] if end == reps[0] else beyond[-1]
                 worst = max(worst, err(float(far), [(1.0, end)]))
-        for a, b in itertools.pairwise(reps):
-            inside = present[(present > a) & (present < b)]
-            if not inside.size:
-                continue
-            d = float(inside[np.argmin(np.abs(inside - 0.5 * (a + b)))])
-            t = (d - a) / (b - a)
-            worst = max(worst, err(d, [(1 - t, a), (t, b)]))
+    for d, a, b in checks:
+        t = (d - a) / (b - a)
+        worst = max(worst, err(d, [(1 - t, a), (t, b)]))
     return worst
 
 
@@ -688,6 +806,7 @@ def plan(
         )
     spectra = _Spectra(_grid(size))
     cache = _KernelCache(lens, model, spectra)
+    finite = _finite_scene_factor((rows, cols), spectra.n)  # kernel_error -> image error
     effects = []
     if scene.missing_pixels:
         what = (
@@ -718,7 +837,10 @@ def plan(
         if per_row:
             parts, band_err = [(r, r) for r in range(rows)], 0.0
         else:
-            parts, band_err = _partition(all_rows, 0, rows - 1, row_dist, tolerance, integer=True)
+            parts, band_err, _ = _partition(
+                all_rows, 0, rows - 1, row_dist, tolerance, integer=True
+            )
+            band_err *= finite
         starts = [0] + [end + 1 for end, _ in parts[:-1]]
         band_specs = [(s, end + 1, row_profile(rep)) for s, (end, rep) in zip(starts, parts)]
         if len(parts) == 1:
@@ -751,10 +873,14 @@ def plan(
         occlusion = n_edge > 0
     p_ref = camera.reference_mm
     groups = _groups(scene, present)
+    # rows whose pixels reach a band's rows: the largest blur plus the magnification shift
+    moved = 0.5 * math.hypot(rows, cols) * float(np.max(np.abs(p_all / camera.reference_mm - 1)))
+    reach = size // 2 + math.ceil(moved) + 1
     bands, layer_sq, mag_sq, mag_applied, mag_steps = [], 0.0, 0.0, False, 1
     for r0, r1, prof in band_specs:
         cache.clear()  # a fresh cache per band: memory does not grow with the rows
-        layers, err = _layers(groups, prof, cache, tolerance)
+        near = _near(scene, max(0, r0 - reach), r1 + reach)
+        layers, err, checks = _layers(groups, near, prof, cache, tolerance, hat=not occlusion)
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
                 prof, layers, lens, model, spectra, p_ref, (rows, cols), tolerance
@@ -763,13 +889,14 @@ def plan(
             steps, m_err, m_app, n = _forced_steps(prof, p_ref, magnification_steps)
         mag_applied, mag_steps = mag_applied or m_app, max(mag_steps, n)
         if not occlusion:  # else box layers (occlusion compositing): _layers' own error
-            err = _hat_error(groups, layers, steps, cache, (rows, cols))
+            err = _hat_error(groups, near, layers, checks, steps, cache, (rows, cols))
         # each band's estimate bounds the RMS error of its rows: the image's RMS error is
         # at most their row-weighted RMS (not their maximum, 2x looser over a rolling sweep)
         layer_sq += (r1 - r0) * err**2
         mag_sq += (r1 - r0) * m_err**2
         bands.append(Band(r0, r1, prof, layers, steps))
-    layer_err, mag_err = math.sqrt(layer_sq / rows), math.sqrt(mag_sq / rows)
+    layer_err = finite * math.sqrt(layer_sq / rows)
+    mag_err = finite * math.sqrt(mag_sq / rows)
     n_layers = max(len(b.layers) for b in bands)
     span = f"{_depth(present[-1]):.6g}-{_depth(present[0]):.6g} mm"
     if n_layers == 1:
