@@ -240,7 +240,6 @@ def accumulate(
         [None if options.align == "none" else a.homography for a in aligned.alignments],
         per_frame,
         aligned.shape,
-        lanes=local_workers(),
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)

@@ -17,6 +17,10 @@ from pipeline.core import align
 from pipeline.io.read import read_frame
 
 SATURATION = 0.999  # normalised level at and above which a pixel is treated as clipped
+# Chains of the weighted sum. Fixed, not the worker count: the float32 summation order,
+# so the output's bits, then depend only on the frames (with one lane per worker, 2% of
+# pcb7's 16-bit values moved by 1 code between --threads 1 and 2).
+LANES = 2
 
 
 # ----------------------------------------------------------------------------- frame leaves
@@ -52,7 +56,9 @@ def _add_frame(partial, path: str, homography, weight, shape):
     return leaf if partial is None else _merge(partial, leaf)
 
 
-def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape, *, lanes: int = 2):
+def weighted_sum_graph(
+    files: Sequence[Path], homographies, weights, shape, *, lanes: int = LANES
+):
     """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
 
     ``weights[i]`` is frame i's weight, a number or one per row. Frames whose
@@ -60,8 +66,9 @@ def weighted_sum_graph(files: Sequence[Path], homographies, weights, shape, *, l
     each lane is a chain of :func:`_add_frame` steps, so memory is flat in the
     number of frames (a binary tree of merges held one partial sum per level, some
     140 MiB more at 28 frames of 3 Mpx than at 7) while ``lanes`` workers decode
-    side by side. Returns a Delayed yielding ``(sum, clipped_any_frame,
-    decode_seconds)``.
+    side by side. The result's bits depend on ``lanes`` (the float32 summation
+    order), not on the scheduler or its threads. Returns a Delayed yielding
+    ``(sum, clipped_any_frame, decode_seconds)``.
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")
