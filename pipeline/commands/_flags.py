@@ -233,6 +233,15 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         "(default: from the lens profile, else measured from the frames)",
     )
     parser.add_argument(
+        "--no-frame-guard",
+        dest="frame_guard",
+        action="store_const",
+        const=False,
+        help="deconvolution alone: do not keep the result within the aligned frames' range, "
+        "nor take the sharpest frame where it shows more detail, nor hold the noise to a "
+        "frame's (and use the fitted blur span as measured)",
+    )
+    parser.add_argument(
         "--max-pixels",
         type=int,
         metavar="N",
@@ -260,4 +269,5 @@ def stack_options(args: argparse.Namespace):
         tile_px=given("tile_px"),
         save_kernel=getattr(args, "save_kernel", None),
         max_pixels=given("max_pixels"),
+        frame_guard=given("frame_guard"),
     )

@@ -77,6 +77,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         "align": args.align,
         "blur_span_px": args.blur_span_px,
         "tile_px": args.tile_px,
+        "frame_guard": args.frame_guard,
         "concurrency": args.concurrency,
         "threads_per_stack": args.threads,
         "scheduler": args.scheduler,

@@ -32,6 +32,9 @@ class StackOptions:
     save_kernel: Path | None = None
     sweep_ends: str = "full"
     max_pixels: int = DEFAULT_MAX_PIXELS  # --max-pixels: refuse larger frames before decoding
+    # keep the result to what the aligned frames support (pipeline.core.frame_support):
+    # their range, their sharpest frame where it shows more detail, a single frame's noise
+    frame_guard: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

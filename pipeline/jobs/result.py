@@ -52,26 +52,38 @@ RESCALE_ABOVE = 1e4  # linear light has white at 1: far larger values are rescal
 
 
 def restore_image(
-    image, kernel, options: StackOptions, *, clipped=None, kernel_samples=None, source=None
+    image,
+    kernel,
+    options: StackOptions,
+    *,
+    clipped=None,
+    kernel_samples=None,
+    source=None,
+    max_noise=None,
 ) -> np.ndarray:
     """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
 
     ``kernel_samples`` (the blur at several depths) can make Wiener robust to the
-    residual depth dependence of the IPSF (see :func:`wiener_options`). Images whose
+    residual depth dependence of the IPSF (see :func:`wiener_options`); ``max_noise``
+    caps the Wiener result's noise std (per channel). Images whose
     values exceed ``RESCALE_ABOVE`` (float frames in other units) are deconvolved
     divided by their peak and scaled back, so float32 sums cannot overflow.
     ``source`` (the frames, for messages) names the input in errors.
     """
     clipped = clipped_pixels(image) if clipped is None else clipped
-    extra = wiener_options(kernel, kernel_samples) if options.method == "wiener" else {}
+    peak = float(np.max(np.abs(image))) if np.size(image) else 0.0
+    scale = peak if peak > RESCALE_ABOVE else 1.0
+    extra = {}
+    if options.method == "wiener":
+        extra = wiener_options(kernel, kernel_samples)
+        if max_noise is not None:
+            extra["max_noise"] = max_noise / scale
     finite = np.isfinite(image)
     if not np.all(finite):
         raise InputError(
             f"{source or 'the image'}: the average of the frames holds "
             f"{int(np.count_nonzero(~finite))} non-finite values; check the frames' values"
         )
-    peak = float(np.max(np.abs(image))) if np.size(image) else 0.0
-    scale = peak if peak > RESCALE_ABOVE else 1.0
     data = image if scale == 1.0 else (np.asarray(image, np.float64) / scale).astype(image.dtype)
     result = deconvolve_tiled(  # clipped in any frame: at least the observed value
         data, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra

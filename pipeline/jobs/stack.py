@@ -26,6 +26,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus
+from pipeline.core.frame_support import FrameSupport, frame_noise_ceiling, keep_to_frames
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
 from pipeline.core.weights import constant_speed_weights
@@ -49,6 +50,12 @@ from pipeline.parallel.scheduler import _TaskProgress, local_workers
 log = logging.getLogger(__name__)
 
 PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
+# The blur-span fit matches a pillbox core to the frames; real lenses' defocus also has
+# a wide soft tail, which a kernel of the fitted span leaves as haze (issue 13: pcb7's
+# far barcode kept 45 of its frame's 68 contrast). Twice the fit restored it on pcb7,
+# pcb10, beetle and amber (tests/benchmarks/results/real_regions/NOTE.md); what
+# overshoots is clipped to the frames' range (pipeline.core.frame_support).
+FITTED_SPAN_SCALE = 2.0
 MIN_FRAME_SIDE_PX = 8  # smaller frames hold no usable detail (and no room for a kernel)
 
 
@@ -228,8 +235,10 @@ def accumulate(
     options: StackOptions,
     *,
     progress: Progress = _no_progress,
-) -> tuple[np.ndarray, np.ndarray]:
-    """``sum_i w_i warp(frame_i)`` streamed through dask, and the pixels clipped in any frame.
+    support: bool = False,
+) -> tuple[np.ndarray, np.ndarray, FrameSupport | None]:
+    """``sum_i w_i warp(frame_i)`` streamed through dask, the pixels clipped in any frame
+    and, with ``support``, the frames' per-pixel range and sharpest frame.
 
     ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
     """
@@ -240,15 +249,16 @@ def accumulate(
         [None if options.align == "none" else a.homography for a in aligned.alignments],
         per_frame,
         aligned.shape,
+        support=support,
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
     with _TaskProgress("_add_frame", lambda done: progress("accumulate", done, used)):
-        ((average, clipped, read_s),) = dask.compute(graph)
+        ((average, clipped, read_s, frames),) = dask.compute(graph)
     progress("accumulate", used, used)
     aligned.timings["accumulate"] = time.perf_counter() - t0
     aligned.timings["read"] = read_s  # full-resolution decoding, summed over worker threads
-    return average, clipped
+    return average, clipped, frames
 
 
 def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, options) -> dict:
@@ -377,8 +387,12 @@ def process_stack(
         fit = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
     aligned.previews = None  # not needed past the alignment: memory flat in the frame count
     with ThreadPoolExecutor(1, thread_name_prefix="flexdof-kernel") as pool:
-        kernel_job = pool.submit(_stack_ipsf, aligned, weights, blur_span, fit)
-        average, clipped = accumulate(aligned, weights, options, progress=progress)
+        kernel_job = pool.submit(
+            _stack_ipsf, aligned, weights, blur_span, fit, options.frame_guard
+        )
+        average, clipped, frames = accumulate(
+            aligned, weights, options, progress=progress, support=options.frame_guard
+        )
         kernel, kernel_samples, kernel_summary = kernel_job.result()
 
     progress("deconvolve", 0, 1)
@@ -390,19 +404,35 @@ def process_stack(
         clipped=clipped,
         kernel_samples=kernel_samples,
         source=_describe_frames(stack),
+        max_noise=None if frames is None else frame_noise_ceiling(frames),
     )
     timings["deconvolve"] = time.perf_counter() - t0
-    progress("deconvolve", 1, 1)
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
+    if frames is not None:
+        t0 = time.perf_counter()
+        result, blended = keep_to_frames(result, frames, clipped)
+        timings["frame_guard"] = time.perf_counter() - t0
+        sidecar["frame_guard"] = {
+            "sharpest_frame_fraction": round(blended, 4),
+            "noise_ceiling": [float(v) for v in np.atleast_1d(frame_noise_ceiling(frames))],
+        }
+    progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
 
 
-def _stack_ipsf(aligned: AlignedStack, weights: np.ndarray, blur_span: float | None, fit):
+def _stack_ipsf(
+    aligned: AlignedStack,
+    weights: np.ndarray,
+    blur_span: float | None,
+    fit,
+    frame_guard: bool = False,
+):
     """The stack's IPSF (:func:`stack_kernel`, Eqs. 5-6), after measuring the blur span
     (:func:`pipeline.core.defocus.estimate_blur_span`) on ``fit``, the aligned previews
-    at the fit's resolution and their downscale factor, when given."""
+    at the fit's resolution and their downscale factor, when given. With the frame
+    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``."""
     t0 = time.perf_counter()
     if fit is not None:
         small, factor = fit
@@ -417,6 +447,8 @@ def _stack_ipsf(aligned: AlignedStack, weights: np.ndarray, blur_span: float | N
                 "give it with --blur-span-px or give the focus positions and a lens in stack.toml"
             ) from err
         log.info("estimated blur span: %.1f px across the stack", blur_span)
+        if frame_guard:
+            blur_span = min(FITTED_SPAN_SCALE * blur_span, max_span)
     result = stack_kernel(
         aligned.positions,
         weights,

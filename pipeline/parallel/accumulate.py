@@ -14,6 +14,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align
+from pipeline.core.frame_support import FrameSupport
 from pipeline.io.read import read_frame
 
 SATURATION = 0.999  # normalised level at and above which a pixel is treated as clipped
@@ -24,8 +25,10 @@ LANES = 2
 
 
 # ----------------------------------------------------------------------------- frame leaves
-def _warped_leaf(path: str, homography, weight, shape):
-    """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode time.
+def _warped_leaf(path: str, homography, weight, shape, support: bool = False):
+    """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode
+    time; with ``support``, its :class:`~pipeline.core.frame_support.FrameSupport`
+    (else ``None``).
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
     """
@@ -35,29 +38,37 @@ def _warped_leaf(path: str, homography, weight, shape):
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
+    stats = FrameSupport.of_frame(frame, ~clipped) if support else None
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
         frame *= np.asarray(weight, np.float32).reshape((-1,) + (1,) * (frame.ndim - 1))
-    return frame, clipped, read_s
+    return frame, clipped, read_s, stats
 
 
 def _merge(a, b):
-    """Sum two partial weighted sums (in place), OR their clipped masks, add decode times."""
+    """Sum two partial weighted sums (in place), OR their clipped masks, add decode times,
+    merge their frame statistics."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one step: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    return a[0], a[1], a[2] + b[2]
+    return a[0], a[1], a[2] + b[2], None if a[3] is None else a[3].merge(b[3])
 
 
-def _add_frame(partial, path: str, homography, weight, shape):
+def _add_frame(partial, path: str, homography, weight, shape, support: bool = False):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
-    leaf = _warped_leaf(path, homography, weight, shape)
+    leaf = _warped_leaf(path, homography, weight, shape, support)
     return leaf if partial is None else _merge(partial, leaf)
 
 
 def weighted_sum_graph(
-    files: Sequence[Path], homographies, weights, shape, *, lanes: int = LANES
+    files: Sequence[Path],
+    homographies,
+    weights,
+    shape,
+    *,
+    lanes: int = LANES,
+    support: bool = False,
 ):
     """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
 
@@ -68,7 +79,9 @@ def weighted_sum_graph(
     140 MiB more at 28 frames of 3 Mpx than at 7) while ``lanes`` workers decode
     side by side. The result's bits depend on ``lanes`` (the float32 summation
     order), not on the scheduler or its threads. Returns a Delayed yielding
-    ``(sum, clipped_any_frame, decode_seconds)``.
+    ``(sum, clipped_any_frame, decode_seconds, support)``; ``support`` is the read
+    frames' :class:`~pipeline.core.frame_support.FrameSupport` when asked for, else
+    ``None``.
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")
@@ -83,7 +96,9 @@ def weighted_sum_graph(
         for path, h, w in used[lane :: int(lanes)]:
             # pure=False: equal steps (a frame listed twice, first in two lanes) stay separate
             # tasks; a shared one would be added into, in place, by two later steps
-            partial = dask.delayed(_add_frame, pure=False)(partial, path, h, w, tuple(shape))
+            partial = dask.delayed(_add_frame, pure=False)(
+                partial, path, h, w, tuple(shape), support
+            )
         level.append(partial)
     while len(level) > 1:
         merged = [dask.delayed(_merge)(level[i], level[i + 1]) for i in range(0, len(level) - 1, 2)]

@@ -19,7 +19,15 @@ from pipeline.workflow.ledger import LEDGER_NAME
 
 _TOP_KEYS = ("description", "inputs", "options", "output", "run", "schedule")
 _INPUT_KEYS = ("directories", "files", "frames", "group_by", "options")
-_OPTION_KEYS = ("lens", "method", "align", "blur_span_px", "tile_px", "align_max_side_px")
+_OPTION_KEYS = (
+    "lens",
+    "method",
+    "align",
+    "blur_span_px",
+    "tile_px",
+    "align_max_side_px",
+    "frame_guard",
+)
 _OUTPUT_KEYS = ("directory", "name", "encoding")
 _RUN_KEYS = ("concurrency", "threads_per_stack", "scheduler", "retry_failed")
 _SCHEDULE_KEYS = ("every",)
@@ -117,6 +125,8 @@ def _parse_options(path: Path, table: dict, where: str) -> dict:
             if not value > 0:
                 raise InputError(f"{path}: blur_span_px{where} must be > 0, got {value!r}")
             value = float(value)
+        elif key == "frame_guard":
+            _typed(path, where, key, value, bool)
         else:
             _typed(path, where, key, value, int)
             if value < 16:

@@ -147,6 +147,13 @@ SPECTRAL_BAND = 0.3  # cycles/px: the bound reads the spectrum's high band only
 def _noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
     """The lower of two upper bounds on the white-noise level (see
     :func:`estimate_noise_sigma`)."""
+    haar = haar_noise_sigma(y, valid)
+    return min(haar, _spectral_noise_bound(y, valid)) if haar > 0 else 0.0
+
+
+def haar_noise_sigma(y: np.ndarray, valid: np.ndarray) -> float:
+    """``median(|HH|) / 0.6745`` of the finest diagonal Haar band of a 2-D ``y`` over 2x2
+    blocks of ``valid`` pixels (Donoho & Johnstone 1994); 0 when none is valid."""
     rows, cols = (y.shape[0] // 2) * 2, (y.shape[1] // 2) * 2
     if rows == 0 or cols == 0:
         return 0.0
@@ -157,8 +164,7 @@ def _noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
     ok = v[0::2, 0::2] & v[0::2, 1::2] & v[1::2, 0::2] & v[1::2, 1::2]
     if not ok.any():
         return 0.0
-    haar = float(np.median(np.abs(hh[ok])) / _MAD_TO_SIGMA)
-    return min(haar, _spectral_noise_bound(y, valid))
+    return float(np.median(np.abs(hh[ok])) / _MAD_TO_SIGMA)
 
 
 def _spectral_noise_bound(y: np.ndarray, valid: np.ndarray) -> float:

@@ -199,7 +199,15 @@ def _plan_wiener(
     regularization=None,
     kernel_samples=None,
     noise_gain=None,
+    max_noise=None,
 ):
+    """The Wiener filter's ``lam`` per channel and its reach (``pad``).
+
+    ``lam`` is ``regularization`` when given, else ``sigma^2 / s2`` of the prior fit,
+    raised until the filter's white-noise gain is at most ``noise_gain`` (and
+    ``MAX_NOISE_GAIN``) and the result's noise std ``gain * sigma`` at most
+    ``max_noise`` (one value or one per channel; e.g. a single frame's noise, issue 13).
+    """
     if prior not in PRIORS:
         raise InputError(f"prior must be one of {PRIORS}, got {prior!r}")
     lam = _per_channel("regularization", regularization, y.shape[2])
@@ -218,8 +226,15 @@ def _plan_wiener(
         # never amplify white noise by more than noise_gain (issue 13), nor ever by more
         # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
         # lens PSF's spectral zeros amplify round-off (issue 14: an 89 px pillbox, -11 dB)
-        gain = MAX_NOISE_GAIN if noise_gain is None else min(float(noise_gain), MAX_NOISE_GAIN)
-        lam = np.maximum(lam, lam_for_noise_gain(k, gain, prior))
+        gain = np.full(y.shape[2], MAX_NOISE_GAIN)
+        if noise_gain is not None:
+            gain = np.minimum(gain, float(noise_gain))
+        ceiling = _per_channel("max_noise", max_noise, y.shape[2])
+        if ceiling is not None:  # the result's noise std at most max_noise (issue 13)
+            ok = sigma > 0
+            gain[ok] = np.minimum(gain[ok], np.maximum(ceiling[ok], 1e-9) / sigma[ok])
+        floors = {g: lam_for_noise_gain(k, g, prior) for g in set(gain.tolist())}
+        lam = np.maximum(lam, [floors[g] for g in gain.tolist()])
     lam = np.clip(lam, _LAM_MIN, None)
     variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
     pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))

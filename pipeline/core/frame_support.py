@@ -1,0 +1,270 @@
+"""What the aligned frames support: a restored focal stack kept within the frames' range
+and, where one frame shows more detail than the restoration, that frame (issue 13).
+
+The paper's model (Eqs. 5-6) is linear and depth-invariant; real stacks break it at
+occlusion edges, at the ends of the focus range (Sec. 4.1) and where the fitted blur
+is not the lens's. Where they do, deconvolution leaves what the frames can explain:
+rims and dark moats (values outside every frame's), or a softer result than the frame
+focused there. A true all-in-focus image is, at each pixel, one of the frames (the one
+in focus there), so
+
+* it never leaves ``[min, max]`` of the frames near that pixel
+  (:func:`clip_to_frames`; a 3x3 neighbourhood is the registration slack), and
+* where the sharpest frame holds more local contrast than the restoration, above the
+  noise, the frame is the better estimate (:func:`prefer_sharpest`).
+
+The per-pixel range and the sharpest frame are streamed beside the weighted sum
+(:class:`FrameSupport`, merged like the sum), so memory stays flat in the frame count.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import cv2
+import numpy as np
+
+from pipeline.core.deconvolve.common import haar_noise_sigma
+
+# smoothing of the squared Laplacian (the per-pixel focus measure): wide enough that
+# the flat inside of a stripe takes the frame its edges choose (at 2 px the choice
+# there followed noise: blotches of defocused frames on pcb7's barcode)
+FOCUS_SIGMA_PX = 8.0
+FOCUS_BLOCK_PX = 4  # the focus measure and the frame choice are per block of this side
+# (sigma, window) px of the detail bands compared: g - G_sigma * g, std over the window
+DETAIL_BANDS = ((1.0, 7.0), (4.0, 15.0))
+BLEND_SIGMA_PX = 6.0  # smoothing of the blend map: no seams at its edges
+ENERGY_BLOCK_PX = 4  # the blend weights are computed per block of this side
+CONTRAST_FLOOR = 2.0 / 255.0  # detail std (display levels of 8-bit sRGB) below which no swap
+# The range and the sharpest frame are kept as 16-bit codes of [0, 1] linear light
+# (nearest rounding, 1.5e-5 steps; a third of float32's memory and fast integer
+# min/max). The end codes mean "at or beyond": a range bound there is open.
+CODE_MAX = 65535
+
+
+def to_codes(image: np.ndarray) -> np.ndarray:
+    """``round(image * 65535)`` saturated to uint16 (values beyond 1 are capped first:
+    OpenCV's saturation takes an overflow to infinity to 0)."""
+    capped = np.minimum(image, np.float32(1.0), dtype=np.float32)
+    return cv2.multiply(capped, float(CODE_MAX), dtype=cv2.CV_16U)
+
+
+def from_codes(codes: np.ndarray) -> np.ndarray:
+    """Linear float32 values of 16-bit codes."""
+    return cv2.multiply(codes, 1.0 / CODE_MAX, dtype=cv2.CV_32F)
+
+
+@dataclasses.dataclass
+class FrameSupport:
+    """Streaming per-pixel statistics of aligned frames (linear light, unweighted).
+
+    Attributes
+    ----------
+    low, high : ndarray (rows, cols[, c]), uint16
+        Per-pixel minimum and maximum over the frames, as codes (:func:`to_codes`).
+    focus : ndarray, float32
+        The best focus measure seen, per block (:func:`focus_measure`).
+    sharpest : ndarray like ``low``
+        Per block, the frame with the best focus measure (codes).
+    noise : list of ndarray
+        Each frame's noise std per channel (:func:`frame_noise`).
+    """
+
+    low: np.ndarray
+    high: np.ndarray
+    focus: np.ndarray
+    sharpest: np.ndarray
+    noise: list
+
+    @classmethod
+    def of_frame(cls, frame: np.ndarray, valid: np.ndarray) -> FrameSupport:
+        """The statistics of one frame (``valid``: its pixels not clipped)."""
+        codes = to_codes(frame)  # one array for all three until a merge writes
+        return cls(codes, codes, focus_measure(codes), codes, [frame_noise(frame, valid)])
+
+    def merge(self, other: FrameSupport) -> FrameSupport:
+        """Fold ``other`` in, in place (on a tie of focus ``self``'s frame stays: the
+        result depends on the frames' order into the merges, which is fixed)."""
+        if self.high is self.low:  # a single frame's statistics share one array
+            self.high, self.sharpest = self.low.copy(), self.low.copy()
+        np.minimum(self.low, other.low, out=self.low)
+        np.maximum(self.high, other.high, out=self.high)
+        better = _expanded(other.focus > self.focus, FOCUS_BLOCK_PX, self.sharpest.shape)
+        if self.sharpest.ndim == 3:
+            better = better[..., None]
+        np.copyto(self.sharpest, other.sharpest, where=better)
+        np.maximum(self.focus, other.focus, out=self.focus)
+        self.noise = self.noise + other.noise
+        return self
+
+    def median_noise(self) -> np.ndarray:
+        """The frames' median noise std per channel."""
+        return np.median(np.array(self.noise, dtype=np.float64), axis=0)
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:
+        return image
+    return cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+
+
+def _reduced(image: np.ndarray, factor: int) -> np.ndarray:
+    """Box average over ``factor x factor`` blocks (the last partial block included)."""
+    rows, cols = image.shape[:2]
+    size = (-(-cols // factor), -(-rows // factor))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def _expanded(reduced: np.ndarray, factor: int, shape: tuple[int, ...]) -> np.ndarray:
+    """Each reduced pixel repeated over its block, cropped to ``shape`` (rows, cols)."""
+    full = np.repeat(np.repeat(reduced, factor, axis=0), factor, axis=1)
+    return full[: shape[0], : shape[1]]
+
+
+def focus_measure(frame: np.ndarray) -> np.ndarray:
+    """Local energy of the Laplacian of the grey frame, ``sqrt(G_8px * (lap g)^2)``, per
+    ``FOCUS_BLOCK_PX`` block (the frame's size divided by it, rounded up).
+
+    The usual focus measure of focus stacking (Nayar & Nakagawa's sum-modified
+    Laplacian family): in focus, fine detail and so the Laplacian's energy peak. The
+    energy is smoothed over 8 px anyway, so a block of 4 px loses nothing and costs a
+    sixteenth of the time and memory. Any scale of ``frame`` (codes) will do: only
+    the frames' order at each block counts.
+    """
+    lap = cv2.Laplacian(_grey(frame), cv2.CV_32F, ksize=3)
+    energy = _reduced(lap * lap, FOCUS_BLOCK_PX)
+    energy = cv2.GaussianBlur(energy, (0, 0), FOCUS_SIGMA_PX / FOCUS_BLOCK_PX)
+    return np.sqrt(np.maximum(energy, 0.0))
+
+
+NOISE_CROP_PX = 512  # centre crop the per-frame noise estimate reads
+
+
+def frame_noise(frame: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Noise std per channel of a frame: the robust Haar estimate
+    (:func:`pipeline.core.deconvolve.common.haar_noise_sigma`) on a centre crop."""
+    r0 = max(0, (frame.shape[0] - NOISE_CROP_PX) // 2)
+    c0 = max(0, (frame.shape[1] - NOISE_CROP_PX) // 2)
+    crop = (slice(r0, r0 + NOISE_CROP_PX), slice(c0, c0 + NOISE_CROP_PX))
+    channels = frame[..., None] if frame.ndim == 2 else frame
+    ok = valid[crop]
+    return np.array(
+        [haar_noise_sigma(channels[(*crop, c)], ok) for c in range(channels.shape[2])]
+    )
+
+
+NOISE_SHARE = 0.7  # the result may be at most this fraction of a single frame's noise
+# ... but never held below this std (linear light): a quarter of an 8-bit level in deep
+# shadow (linear 0.02), invisible; clean synthetic frames (noise ~0) are not regularised
+NOISE_FLOOR = 2e-4
+
+
+def frame_noise_ceiling(support: FrameSupport) -> np.ndarray:
+    """The restored image's noise std ceiling per channel: ``NOISE_SHARE`` of a frame's.
+
+    Wiener's natural-prior fit sets ``lam = sigma^2 / s2`` with ``s2`` inversely
+    proportional to ``sum(k^2)``, which collapses for the wide IPSFs of real stacks
+    (white-noise gains of 30+ on pcb10: grain and ringing). An all-in-focus image needs
+    no more noise than the frame focused at each pixel, so the filter is held to a
+    share of one frame's noise (measured on the warped frames, so JPEG's correlated noise
+    and the average's real noise reduction are in the ratio), floored at ``NOISE_FLOOR``.
+    """
+    return np.maximum(NOISE_SHARE * support.median_noise(), NOISE_FLOOR)
+
+
+def _channels(image: np.ndarray) -> list[np.ndarray]:
+    """Views of each channel of an image (the image itself when it is 2-D)."""
+    return [image] if image.ndim == 2 else [image[..., c] for c in range(image.shape[2])]
+
+
+def clip_to_frames(
+    image: np.ndarray, support: FrameSupport, clipped=None, *, radius_px: int = 1
+) -> np.ndarray:
+    """``image`` clipped, per pixel and channel, to the frames' range over a
+    ``(2 radius + 1)^2`` neighbourhood (the registration slack), in place.
+
+    The 16-bit codes round to nearest, so the range is widened by one code; a bound at
+    an end code (0 or 65535) is open (frames at or beyond it), and pixels ``clipped`` in
+    some frame keep no upper bound (the frames saw only that the scene is at least that
+    bright). One channel at a time: a channel's worth of temporaries.
+    """
+    size = 2 * int(radius_px) + 1
+    box = cv2.getStructuringElement(cv2.MORPH_RECT, (size, size))
+    lows = _channels(support.low.reshape(image.shape))
+    highs = _channels(support.high.reshape(image.shape))
+    for out, low_codes, high_codes in zip(_channels(image), lows, highs):
+        low_codes = cv2.erode(low_codes, box, borderType=cv2.BORDER_REPLICATE)
+        high_codes = cv2.dilate(high_codes, box, borderType=cv2.BORDER_REPLICATE)
+        low = from_codes(cv2.subtract(low_codes, 1))
+        high = from_codes(cv2.add(high_codes, 1))
+        low[low_codes == 0] = -np.inf
+        high[high_codes == CODE_MAX] = np.inf
+        if clipped is not None:
+            high[clipped] = np.inf
+        np.clip(out, low, high, out=out)
+    return image
+
+
+def keep_to_frames(image: np.ndarray, support: FrameSupport, clipped=None):
+    """:func:`clip_to_frames`, then :func:`prefer_sharpest` (a blend of two images within
+    the range stays within it). Returns the image (in place) and the blended fraction."""
+    return prefer_sharpest(clip_to_frames(image, support, clipped), support, clipped)
+
+
+def _display(grey: np.ndarray) -> np.ndarray:
+    """A linear grey image in display terms (gamma 1/2.2), where the contrast floor is set."""
+    return cv2.pow(np.maximum(grey, 0.0), 1 / 2.2)
+
+
+def _detail_energy(grey: np.ndarray, sigma_px: float, window_px: float) -> np.ndarray:
+    """Local std (Gaussian window ``window_px``) of the band ``g - G_sigma * g``, per
+    ``ENERGY_BLOCK_PX`` block (the band is taken at full resolution, or at half for a
+    sigma of 2 px and more, where it holds nothing finer)."""
+    step = 2 if sigma_px >= 2 else 1
+    if step > 1:
+        grey = _reduced(grey, step)
+    detail = grey - cv2.GaussianBlur(grey, (0, 0), sigma_px / step)
+    energy = _reduced(detail * detail, ENERGY_BLOCK_PX // step)
+    energy = cv2.GaussianBlur(energy, (0, 0), window_px / ENERGY_BLOCK_PX)
+    return np.sqrt(np.maximum(energy, 0.0))
+
+
+def prefer_sharpest(
+    image: np.ndarray, support: FrameSupport, clipped=None
+) -> tuple[np.ndarray, float]:
+    """Blend towards the sharpest frame where it shows more local detail than ``image``.
+
+    Per detail band (``DETAIL_BANDS``: fine ``g - G_1px * g`` in 7 px windows, coarse
+    ``g - G_4px * g`` in 15 px windows) the weight is ``clip(gap / floor - 1, 0, 1)``,
+    ``gap`` the frame's local std minus the image's on the display-gamma grey image and
+    ``floor`` = 2 levels of 8 bits; the larger of the bands' weights is smoothed over
+    6 px. Only detail above the floor counts, so noise in flat areas never swaps; where
+    deconvolution restored the detail its result stays. The coarse band catches what
+    the fine one misses: low-frequency contrast lost to the IPSF's tail (haze), and the
+    ends of the stack's focus range (Sec. 4.1), where the end frames are the sharpest.
+    The weights are computed per 4 px block (they vary over 6 px and more) and
+    interpolated. Pixels ``clipped`` in some frame keep ``image`` (the frames' codes
+    end at white). Returns the blended image (in place) and the fraction of pixels
+    blended over half.
+    """
+    sharpest = support.sharpest.reshape(image.shape)
+    frame_grey = _display(from_codes(_grey(sharpest)))
+    image_grey = _display(_grey(image))
+    alpha = None
+    for sigma_px, window_px in DETAIL_BANDS:
+        gap = _detail_energy(frame_grey, sigma_px, window_px)
+        gap -= _detail_energy(image_grey, sigma_px, window_px)
+        band = np.clip(gap / np.float32(CONTRAST_FLOOR) - 1.0, 0.0, 1.0)
+        alpha = band if alpha is None else np.maximum(alpha, band)
+    alpha = cv2.GaussianBlur(alpha, (0, 0), BLEND_SIGMA_PX / ENERGY_BLOCK_PX)
+    size = (image.shape[1], image.shape[0])
+    alpha = cv2.resize(alpha, size, interpolation=cv2.INTER_LINEAR)
+    if clipped is not None:
+        alpha[clipped] = 0.0
+    fraction = float(np.mean(alpha > 0.5))
+    for out, codes in zip(_channels(image), _channels(sharpest)):
+        frame = from_codes(codes)
+        frame -= out
+        frame *= alpha
+        out += frame
+    return image, fraction

@@ -1,0 +1,174 @@
+"""Keeping a restored stack to what its frames support (issue 13), against brute force:
+the streamed range and sharpest frame against numpy over all frames at once, the clip
+against scipy's min/max filters, the fallback on a stack whose truth is known, the
+noise ceiling against measured noise.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from pipeline.core import frame_support as fs
+from pipeline.core.deconvolve.dispatch import plan, restore
+from pipeline.core.frame_support import FrameSupport
+
+
+def _frames(n=5, shape=(40, 56, 3), seed=0):
+    rng = np.random.default_rng(seed)
+    return [rng.uniform(0.0, 1.0, shape).astype(np.float32) for _ in range(n)]
+
+
+def _streamed(frames, order):
+    """Merge the frames' statistics in ``order`` as two lanes would (then lane 1 into 0)."""
+    lanes = [None, None]
+    for k, i in enumerate(order):
+        leaf = FrameSupport.of_frame(frames[i], np.ones(frames[i].shape[:2], bool))
+        lane = k % 2
+        lanes[lane] = leaf if lanes[lane] is None else lanes[lane].merge(leaf)
+    return lanes[0].merge(lanes[1])
+
+
+@pytest.mark.parametrize("order", [[0, 1, 2, 3, 4], [4, 2, 0, 3, 1]])
+def test_streamed_range_and_sharpest_equal_brute_force(order):
+    frames = _frames()
+    # make each frame the sharpest somewhere: blur all but one per vertical band
+    for i, frame in enumerate(frames):
+        for j in range(len(frames)):
+            if j != i:
+                band = frame[:, j * 11 : (j + 1) * 11]
+                band[:] = ndimage.uniform_filter(band, size=(5, 5, 1))
+    got = _streamed(frames, order)
+    stacked = np.stack(frames)
+    code = 0.5 / fs.CODE_MAX  # codes round to nearest
+    np.testing.assert_allclose(fs.from_codes(got.low), stacked.min(axis=0), atol=code)
+    np.testing.assert_allclose(fs.from_codes(got.high), stacked.max(axis=0), atol=code)
+    focus = np.stack([fs.focus_measure(fs.to_codes(f)) for f in frames])
+    b = fs.FOCUS_BLOCK_PX
+    assert focus.shape[1:] == (-(-40 // b), -(-56 // b))  # one value per block
+    # per pixel: the frame whose block holds the best focus
+    blocks = np.argmax(focus, axis=0)
+    best = blocks[np.arange(40)[:, None] // b, np.arange(56)[None, :] // b]
+    want = np.take_along_axis(stacked, best[None, ..., None], axis=0)[0]
+    top2 = np.sort(focus, axis=0)[-2:]
+    unique = (top2[1] > top2[0])[np.arange(40)[:, None] // b, np.arange(56)[None, :] // b]
+    assert unique.mean() > 0.97  # a float16 tie may keep either frame
+    np.testing.assert_allclose(fs.from_codes(got.sharpest)[unique], want[unique], atol=code)
+    # frame j is the sharpest in band j (not the same frame everywhere)
+    for j in range(len(frames)):
+        assert np.mean(best[8:-8, j * 11 + 4 : (j + 1) * 11 - 4] == j) > 0.9
+
+
+def test_a_single_frame_merged_is_not_changed_in_place():
+    frames = _frames(2)
+    first = FrameSupport.of_frame(frames[0], np.ones(frames[0].shape[:2], bool))
+    kept = first.low.copy()
+    first.merge(FrameSupport.of_frame(frames[1], np.ones(frames[1].shape[:2], bool)))
+    # the first frame's shared array became low; high and sharpest are their own arrays
+    assert first.high is not first.low and first.sharpest is not first.low
+    np.testing.assert_array_equal(first.low, np.minimum(kept, fs.to_codes(frames[1])))
+
+
+def test_clip_to_frames_is_a_3x3_min_max_filter():
+    rng = np.random.default_rng(1)
+    frames = [rng.uniform(0.01, 0.99, (30, 33, 3)).astype(np.float32) for _ in range(3)]
+    support = _streamed(frames, [0, 1, 2])
+    image = rng.uniform(-0.5, 1.5, frames[0].shape).astype(np.float32)
+    clipped = np.zeros(image.shape[:2], bool)
+    clipped[5:8, 10:20] = True
+    got = fs.clip_to_frames(image.copy(), support, clipped)
+    stacked = np.stack(frames)
+    low = ndimage.minimum_filter(stacked.min(axis=0), size=(3, 3, 1), mode="nearest")
+    high = ndimage.maximum_filter(stacked.max(axis=0), size=(3, 3, 1), mode="nearest")
+    high[clipped] = np.inf
+    # the frames' own values always pass; the bound is loose by at most 1.5 codes
+    assert np.all(got >= low - 1.5 / fs.CODE_MAX) and np.all(got <= high + 1.5 / fs.CODE_MAX)
+    assert np.all(got >= np.minimum(image, low)) and np.all(got <= np.maximum(image, high))
+    np.testing.assert_allclose(got, np.clip(image, low, high), atol=1.5 / fs.CODE_MAX)
+    assert np.all(got[clipped] >= np.minimum(image[clipped], low[clipped]))
+    inside = (image >= low + 1e-3) & (image <= high - 1e-3)  # nothing inside moves
+    np.testing.assert_array_equal(got[inside], image[inside])
+    assert np.mean(got != image) > 0.3  # and much outside did
+
+
+def test_clip_to_frames_leaves_bounds_at_the_code_ends_open():
+    dark = np.zeros((12, 12), np.float32)
+    bright = np.full((12, 12), 1e38, np.float32)  # float frames far beyond white
+    support = _streamed([dark, bright], [0, 1])
+    image = np.linspace(-2.0, 3e38, 144, dtype=np.float32).reshape(12, 12)
+    np.testing.assert_array_equal(fs.clip_to_frames(image.copy(), support), image)
+
+
+def _two_depth_scene(shape=(64, 96)):
+    """Truth with texture everywhere; frame 0 sharp on the left, frame 1 on the right."""
+    rng = np.random.default_rng(3)
+    truth = ndimage.gaussian_filter(rng.uniform(0.05, 0.9, shape), 0.7).astype(np.float32)
+    truth = np.repeat(truth[..., None], 3, axis=2)
+    blurred = ndimage.gaussian_filter(truth, (3, 3, 0))
+    half = shape[1] // 2
+    near, far = truth.copy(), truth.copy()
+    near[:, half:] = blurred[:, half:]
+    far[:, :half] = blurred[:, :half]
+    return truth, [near, far], blurred
+
+
+def test_prefer_sharpest_takes_detail_the_image_lacks():
+    truth, frames, blurred = _two_depth_scene()
+    support = _streamed(frames, [0, 1])
+    hazy = 0.5 * blurred + 0.5 * truth  # a restoration that lost half the detail
+    out, fraction = fs.prefer_sharpest(hazy.copy(), support)
+    inner = (slice(10, -10), slice(10, -10))
+    before = np.sqrt(np.mean((hazy - truth)[inner] ** 2))
+    after = np.sqrt(np.mean((out - truth)[inner] ** 2))
+    assert after < 0.35 * before
+    assert fraction > 0.5
+
+
+def test_prefer_sharpest_keeps_an_image_with_the_detail():
+    truth, frames, _ = _two_depth_scene()
+    support = _streamed(frames, [0, 1])
+    out, fraction = fs.prefer_sharpest(truth.copy(), support)
+    np.testing.assert_allclose(out, truth, atol=2e-3)  # only float16 rounding can leak
+    assert fraction == 0.0
+
+
+def test_prefer_sharpest_ignores_noise_below_the_floor():
+    rng = np.random.default_rng(5)
+    flat = np.full((48, 48, 3), 0.3, np.float32)
+    frames = [flat + rng.normal(0, 2e-4, flat.shape).astype(np.float32) for _ in range(3)]
+    support = _streamed(frames, [0, 1, 2])
+    out, fraction = fs.prefer_sharpest(flat.copy(), support)
+    np.testing.assert_array_equal(out, flat)
+    assert fraction == 0.0
+
+
+def test_frame_noise_reads_the_frames_noise_and_the_ceiling_has_a_floor():
+    rng = np.random.default_rng(6)
+    base = np.full((300, 300, 3), 0.4, np.float32)
+    frames = [base + rng.normal(0, s, base.shape).astype(np.float32) for s in (0.01, 0.02, 0.03)]
+    support = _streamed(frames, [0, 1, 2])
+    np.testing.assert_allclose(support.median_noise(), 0.02, rtol=0.05)
+    np.testing.assert_allclose(fs.frame_noise_ceiling(support), fs.NOISE_SHARE * 0.02, rtol=0.05)
+    clean = _streamed([base, base.copy()], [0, 1])
+    np.testing.assert_array_equal(fs.frame_noise_ceiling(clean), fs.NOISE_FLOOR)
+
+
+def test_wiener_max_noise_caps_the_results_noise():
+    rng = np.random.default_rng(7)
+    kernel = np.zeros((31, 31))
+    kernel[15, 3:28] = 1.0  # a wide, asymmetric (off-centre mass below) kernel
+    kernel[16:24, 15] = 0.5
+    kernel /= kernel.sum()
+    sigma = 0.01
+    sharp = ndimage.gaussian_filter(rng.uniform(0, 1, (256, 256)), 1.0)
+    clean = ndimage.convolve(sharp, kernel, mode="reflect").astype(np.float32)
+    noisy = clean + rng.normal(0, sigma, clean.shape).astype(np.float32)
+    inner = (slice(40, -40), slice(40, -40))
+
+    def output_noise(**options):  # the same linear filter on the clean and noisy image
+        p = plan(noisy, kernel, method="wiener", noise_sigma=sigma, **options)
+        return np.std((restore(noisy, p) - restore(clean, p))[inner])
+
+    assert output_noise() > 2.0 * sigma  # the prior fit alone amplifies the noise
+    assert output_noise(max_noise=1.5 * sigma) == pytest.approx(1.5 * sigma, rel=0.1)
