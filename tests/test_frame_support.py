@@ -6,6 +6,8 @@ noise ceiling against measured noise.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -92,12 +94,12 @@ def test_clip_to_frames_is_a_3x3_min_max_filter():
     assert np.mean(got != image) > 0.3  # and much outside did
 
 
-def test_clip_to_frames_leaves_bounds_at_the_code_ends_open():
+def test_clip_to_frames_bounds_black_at_zero_and_leaves_white_open():
     dark = np.zeros((12, 12), np.float32)
     bright = np.full((12, 12), 1e38, np.float32)  # float frames far beyond white
     support = _streamed([dark, bright], [0, 1])
     image = np.linspace(-2.0, 3e38, 144, dtype=np.float32).reshape(12, 12)
-    np.testing.assert_array_equal(fs.clip_to_frames(image.copy(), support), image)
+    np.testing.assert_array_equal(fs.clip_to_frames(image.copy(), support), np.maximum(image, 0))
 
 
 def _two_depth_scene(shape=(64, 96)):
@@ -172,3 +174,24 @@ def test_wiener_max_noise_caps_the_results_noise():
 
     assert output_noise() > 2.0 * sigma  # the prior fit alone amplifies the noise
     assert output_noise(max_noise=1.5 * sigma) == pytest.approx(1.5 * sigma, rel=0.1)
+
+
+def test_the_main_job_with_the_guard_stays_within_the_frames(tmp_path):
+    from pipeline.io.read import read_frame
+    from pipeline.jobs.options import StackOptions
+    from pipeline.jobs.stack import process_stack
+
+    sample = Path(__file__).resolve().parents[1] / "stacks" / "motorcycle"
+    options = StackOptions(align="none", frame_guard=True, encoding="float32")
+    guarded = process_stack(sample, tmp_path / "g.tif", options)
+    plain = process_stack(sample, tmp_path / "p.tif", StackOptions(align="none"))
+    frames = np.stack([read_frame(f) for f in sorted(sample.glob("frame_*.png"))])
+    low = ndimage.minimum_filter(frames.min(axis=0), size=(3, 3, 1), mode="nearest")
+    high = ndimage.maximum_filter(frames.max(axis=0), size=(3, 3, 1), mode="nearest")
+    high[np.any(frames >= 0.999, axis=(0, 3))] = np.inf  # clipped somewhere: no upper bound
+    tol = 1.5 / fs.CODE_MAX
+    out = guarded.image
+    assert np.all(out >= low - tol) and np.all(out <= high + tol)
+    assert np.mean((plain.image < low - tol) | (plain.image > high + tol)) > 0.01  # it did
+    assert set(guarded.sidecar["frame_guard"]) == {"sharpest_frame_fraction", "noise_ceiling"}
+    assert "frame_guard" not in plain.sidecar

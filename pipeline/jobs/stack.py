@@ -26,7 +26,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus
-from pipeline.core.frame_support import FrameSupport, frame_noise_ceiling, keep_to_frames
+from pipeline.core.frame_support import FrameSupport, keep_to_frames, noise_ceiling
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
 from pipeline.core.weights import constant_speed_weights
@@ -397,6 +397,7 @@ def process_stack(
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
+    ceiling = None if frames is None else noise_ceiling(frames, average, clipped)
     result = restore_image(
         average,
         kernel,
@@ -404,7 +405,7 @@ def process_stack(
         clipped=clipped,
         kernel_samples=kernel_samples,
         source=_describe_frames(stack),
-        max_noise=None if frames is None else frame_noise_ceiling(frames),
+        max_noise=ceiling,
     )
     timings["deconvolve"] = time.perf_counter() - t0
     sidecar = stack_sidecar(aligned, weights, options.method, options)
@@ -415,7 +416,7 @@ def process_stack(
         timings["frame_guard"] = time.perf_counter() - t0
         sidecar["frame_guard"] = {
             "sharpest_frame_fraction": round(blended, 4),
-            "noise_ceiling": [float(v) for v in np.atleast_1d(frame_noise_ceiling(frames))],
+            "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
     progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])

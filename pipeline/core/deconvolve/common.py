@@ -144,7 +144,7 @@ SPECTRAL_CROP_PX = 1024  # side of the centre crop the spectral noise bound look
 SPECTRAL_BAND = 0.3  # cycles/px: the bound reads the spectrum's high band only
 
 
-def _noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
+def noise_sigma_2d(y: np.ndarray, valid: np.ndarray) -> float:
     """The lower of two upper bounds on the white-noise level (see
     :func:`estimate_noise_sigma`)."""
     haar = haar_noise_sigma(y, valid)
@@ -214,7 +214,7 @@ def estimate_noise_sigma(image, *, saturation=None):
     y = _check_image(image)
     sat = _check_saturation(saturation)
     sig = np.array(
-        map_channels(lambda c: _noise_sigma_2d(y[..., c], _valid_mask(y[..., c], sat)), y.shape[2])
+        map_channels(lambda c: noise_sigma_2d(y[..., c], _valid_mask(y[..., c], sat)), y.shape[2])
     )
     return float(sig[0]) if np.ndim(image) == 2 else sig
 

@@ -34,11 +34,11 @@ from pipeline.core.deconvolve.common import (
     Plan,
     _check_image,
     _check_saturation,
-    _noise_sigma_2d,
     _per_channel,
     _valid_mask,
     check_kernel,
     map_channels,
+    noise_sigma_2d,
 )
 from pipeline.core.deconvolve.rl import _plan_rl, _rl_channel
 from pipeline.core.deconvolve.sparse import _plan_sparse, _sparse_channel
@@ -92,7 +92,7 @@ def plan(
     sigma = _per_channel("noise_sigma", noise_sigma, y.shape[2])
     if sigma is None:
         sigma = np.array(
-            map_channels(lambda c: _noise_sigma_2d(y[..., c], valid[..., c]), y.shape[2])
+            map_channels(lambda c: noise_sigma_2d(y[..., c], valid[..., c]), y.shape[2])
         )
     builder = {"wiener": _plan_wiener, "rl": _plan_rl, "sparse": _plan_sparse}[method]
     params, depth = builder(y, valid, k, sigma, **options)
