@@ -119,7 +119,7 @@ def test_wiener_prior_fit_subtracts_the_whole_noise_term():
     sigma = float(np.sqrt(g / 4.0))  # 4 sigma^2 = G
     y = x + sigma * rng.standard_normal(x.shape)
     point = np.ones((1, 1))
-    p = dc.plan(y, point, method="wiener", noise_sigma=sigma)
+    p = dc.plan(y, point, method="wiener", noise_sigma=sigma, auto="prior")
     assert float(p.params["lam"][0]) == pytest.approx(sigma**2 / g, rel=0.06)
 
 

@@ -20,6 +20,7 @@ from pipeline.core.deconvolve.common import (
     _taper_pad,
     map_channels,
 )
+from pipeline.core.deconvolve.gcv import GCV_TRUST, gcv_regularization
 from pipeline.errors import InputError
 
 
@@ -34,6 +35,21 @@ def _natural_prior_scale(y, valid, sigma, kernel) -> np.ndarray:
     )
     s2 = (energy - 4.0 * sigma**2) / float(np.sum(kernel**2))
     return np.maximum(s2, 4.0 * sigma**2)
+
+
+AUTO_RULES = ("gcv", "prior")  # how lam is chosen when not given
+def _prior_scale(y, valid, sigma, kernel, prior) -> np.ndarray:
+    """The sharp image's spectrum scale per channel under ``prior`` (the prior fit)."""
+    if prior == "natural":
+        return _natural_prior_scale(y, valid, sigma, kernel)
+    # white spectrum: E|X|^2 = N s0^2, var(y) = s0^2 sum(k^2) + sigma^2
+    var = np.array(
+        [
+            float(np.var(y[..., c][valid[..., c]])) if valid[..., c].any() else 0.0
+            for c in range(y.shape[2])
+        ]
+    )
+    return np.maximum((var - sigma**2) / float(np.sum(kernel**2)), sigma**2)
 
 
 MAX_NOISE_GAIN = 10.0  # ceiling of the automatic Wiener filter's white-noise gain
@@ -200,29 +216,33 @@ def _plan_wiener(
     kernel_samples=None,
     noise_gain=None,
     max_noise=None,
+    auto="gcv",
 ):
     """The Wiener filter's ``lam`` per channel and its reach (``pad``).
 
-    ``lam`` is ``regularization`` when given, else ``sigma^2 / s2`` of the prior fit,
-    raised until the filter's white-noise gain is at most ``noise_gain`` (and
-    ``MAX_NOISE_GAIN``) and the result's noise std ``gain * sigma`` at most
-    ``max_noise`` (one value or one per channel; e.g. a single frame's noise, issue 13).
+    ``lam`` is ``regularization`` when given, else chosen by generalized cross-validation
+    (``auto="gcv"``, :func:`pipeline.core.deconvolve.gcv.gcv_regularization`) or as
+    ``sigma^2 / s2`` of the prior fit (``auto="prior"``), raised until the filter's
+    white-noise gain is at most ``noise_gain`` (and ``MAX_NOISE_GAIN``) and the result's
+    noise std ``gain * sigma`` at most ``max_noise`` (one value or one per channel; e.g.
+    a single frame's noise, issue 13).
     """
     if prior not in PRIORS:
         raise InputError(f"prior must be one of {PRIORS}, got {prior!r}")
+    if auto not in AUTO_RULES:
+        raise InputError(f"auto must be one of {AUTO_RULES}, got {auto!r}")
     lam = _per_channel("regularization", regularization, y.shape[2])
+    variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
     if lam is None:
-        if prior == "natural":
-            scale = _natural_prior_scale(y, valid, sigma, k)
-        else:  # white spectrum: E|X|^2 = N s0^2, var(y) = s0^2 sum(k^2) + sigma^2
-            var = np.array(
-                [
-                    float(np.var(y[..., c][valid[..., c]])) if valid[..., c].any() else 0.0
-                    for c in range(y.shape[2])
-                ]
-            )
-            scale = np.maximum((var - sigma**2) / float(np.sum(k**2)), sigma**2)
+        scale = _prior_scale(y, valid, sigma, k, prior)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
+        if auto == "gcv":  # where GCV's noise agrees with the data's (GCV_TRUST)
+            found = map_channels(
+                lambda c: gcv_regularization(y[..., c], k, prior, variance), y.shape[2]
+            )
+            for c, (lam_gcv, noise_gcv) in enumerate(found):
+                if sigma[c] / GCV_TRUST <= noise_gcv <= GCV_TRUST * sigma[c]:
+                    lam[c] = lam_gcv
         # never amplify white noise by more than noise_gain (issue 13), nor ever by more
         # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
         # lens PSF's spectral zeros amplify round-off (issue 14: an 89 px pillbox, -11 dB)
@@ -236,7 +256,6 @@ def _plan_wiener(
         floors = {g: lam_for_noise_gain(k, g, prior) for g in set(gain.tolist())}
         lam = np.maximum(lam, [floors[g] for g in gain.tolist()])
     lam = np.clip(lam, _LAM_MIN, None)
-    variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
     pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))
     params = {"lam": lam, "prior": prior, "pad": pad, "variance": variance}
     return params, pad

@@ -1,0 +1,102 @@
+"""Wiener's regularisation weight by generalized cross-validation (Golub, Heath & Wahba 1979).
+
+For the linear estimate ``X = K* Y / (|K|^2 + V + lam R)`` (Sec. 4.3; ``V`` the kernel
+variance, ``R`` the regulariser's spectrum) the blurred prediction is ``a Y`` with the
+influence ``a = |K|^2 / (|K|^2 + V + lam R)``, diagonal in the Fourier basis, so
+
+    GCV(lam) = mean |(1 - a) Y|^2 / mean(1 - a)^2
+
+needs one FFT of the data and a sum per ``lam``. Its minimiser estimates the ``lam`` of
+least predictive error without knowing the noise level; but it counts as "noise"
+whatever the model does not explain, and at low noise it may interpolate the data. So
+it is trusted only where its noise agrees with the data's own estimate (``GCV_TRUST``);
+elsewhere the natural-prior fit decides. Issue 13: on nine-frame synthetic stacks with
+noise sigma 0.01 and 0.02 the prior fit left 0.4 and 1.8 dB to a ``lam`` tuned on the
+truth; GCV was within 0.1 dB of it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sfft
+
+from pipeline.core.deconvolve.common import _WORKERS, _kernel_fft, _laplacian_spectrum
+
+GCV_CROP_PX = 384  # side of the centre crop GCV reads (mirrored to twice that: periodic)
+GCV_LAMS = np.logspace(-7.0, 1.0, 17)  # the coarse grid (half decades), then refined
+GCV_REFINE_STEPS = 10  # golden-section steps in log lam between the best's neighbours
+# GCV is trusted where its noise and the data's own estimate (the high band,
+# estimate_noise_sigma) agree within this factor either way. Above, GCV counts model
+# mismatch or texture as noise (a clean three-plane stack: 3.7x; a checkerboard: 4e11x);
+# below, its minimum sits at the grid's floor, interpolating the data (a 40 px comet:
+# 0.015x, 0.1 dB worse than the prior fit). Noisy stacks read 1.2-1.5x.
+GCV_TRUST = 2.5
+
+
+def _spectra(y: np.ndarray, kernel: np.ndarray, prior: str, variance):
+    """Weighted data power ``w |Y|^2``, ``|K|^2 + V``, ``V`` and ``R`` on the mirrored crop."""
+    r0 = max(0, (y.shape[0] - GCV_CROP_PX) // 2)
+    c0 = max(0, (y.shape[1] - GCV_CROP_PX) // 2)
+    q = np.asarray(y[r0 : r0 + GCV_CROP_PX, c0 : c0 + GCV_CROP_PX], np.float64)
+    q = np.pad(q, [(0, n) for n in q.shape], mode="symmetric")  # mirror-periodic: no seams
+    power = np.abs(sfft.rfft2(q - q.mean(), workers=_WORKERS)) ** 2
+    k2 = np.abs(_kernel_fft(kernel, q.shape, np.float64)) ** 2
+    v = np.zeros_like(k2) if variance is None else variance(k2.shape)
+    if prior == "natural":
+        reg = _laplacian_spectrum(q.shape, np.float64)
+    else:
+        reg = np.ones_like(k2)
+        reg[0, 0] = 0.0
+    weight = np.full(k2.shape, 2.0)  # an rfft grid: interior columns stand for two
+    weight[:, 0] = 1.0
+    if q.shape[1] % 2 == 0:
+        weight[:, -1] = 1.0
+    return weight * power, weight, k2 + v, v, reg
+
+
+def gcv_noise(lam: float, spectra, size: int) -> float:
+    """GCV's noise std at ``lam``: ``sqrt(|(1 - a) Y|^2 / N / trace(1 - a))`` (Wahba)."""
+    power, weight, base, v, reg = spectra
+    residual = (v + lam * reg) / (base + lam * reg)
+    trace = float(np.sum(weight * residual))
+    return float(np.sqrt(np.sum(power * residual**2) / size / max(trace, 1e-300)))
+
+
+def gcv_score(lam: float, spectra) -> float:
+    """``GCV(lam)`` on the spectra of :func:`_spectra`."""
+    power, weight, base, v, reg = spectra
+    residual = (v + lam * reg) / (base + lam * reg)  # 1 - a
+    trace = float(np.sum(weight * residual))
+    return float(np.sum(power * residual**2)) / max(trace, 1e-300) ** 2
+
+
+def gcv_regularization(
+    y: np.ndarray, kernel: np.ndarray, prior: str = "natural", variance=None
+) -> tuple[float, float]:
+    """The ``lam`` minimising :func:`gcv_score` for one channel ``y`` (2-D), and GCV's
+    noise std there (:func:`gcv_noise`).
+
+    Coarse search on ``GCV_LAMS``, then golden-section search in ``log lam`` between the
+    best's neighbours.
+    """
+    spectra = _spectra(y, np.asarray(kernel, np.float64), prior, variance)
+    size = 4 * min(y.shape[0], GCV_CROP_PX) * min(y.shape[1], GCV_CROP_PX)
+    logs = np.log(GCV_LAMS)
+    scores = [gcv_score(float(np.exp(t)), spectra) for t in logs]
+    best = int(np.argmin(scores))
+    lo, hi = logs[max(best - 1, 0)], logs[min(best + 1, len(logs) - 1)]
+    ratio = (np.sqrt(5.0) - 1.0) / 2.0
+    a, b = hi - ratio * (hi - lo), lo + ratio * (hi - lo)
+    fa, fb = gcv_score(float(np.exp(a)), spectra), gcv_score(float(np.exp(b)), spectra)
+    for _ in range(GCV_REFINE_STEPS):
+        if fa < fb:
+            hi, b, fb = b, a, fa
+            a = hi - ratio * (hi - lo)
+            fa = gcv_score(float(np.exp(a)), spectra)
+        else:
+            lo, a, fa = a, b, fb
+            b = lo + ratio * (hi - lo)
+            fb = gcv_score(float(np.exp(b)), spectra)
+    candidates = [(scores[best], logs[best]), (fa, a), (fb, b)]
+    lam = float(np.exp(min(candidates)[1]))
+    return lam, gcv_noise(lam, spectra, size)
