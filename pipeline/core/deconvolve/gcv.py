@@ -22,8 +22,8 @@ from scipy import fft as sfft
 
 from pipeline.core.deconvolve.common import _WORKERS, _kernel_fft, _laplacian_spectrum
 
-GCV_CROP_PX = 384  # side of the centre crop GCV reads (mirrored to twice that: periodic)
-GCV_LAMS = np.logspace(-7.0, 1.0, 17)  # the coarse grid (half decades), then refined
+GCV_CROP_PX = 256  # side of the centre crop GCV reads (mirrored to twice that: periodic)
+GCV_LAMS = np.logspace(-7.0, 1.0, 9)  # the coarse grid (decades), then refined
 GCV_REFINE_STEPS = 10  # golden-section steps in log lam between the best's neighbours
 # GCV is trusted where its noise and the data's own estimate (the high band,
 # estimate_noise_sigma) agree within this factor either way. Above, GCV counts model
@@ -33,25 +33,37 @@ GCV_REFINE_STEPS = 10  # golden-section steps in log lam between the best's neig
 GCV_TRUST = 2.5
 
 
-def _spectra(y: np.ndarray, kernel: np.ndarray, prior: str, variance):
-    """Weighted data power ``w |Y|^2``, ``|K|^2 + V``, ``V`` and ``R`` on the mirrored crop."""
-    r0 = max(0, (y.shape[0] - GCV_CROP_PX) // 2)
-    c0 = max(0, (y.shape[1] - GCV_CROP_PX) // 2)
-    q = np.asarray(y[r0 : r0 + GCV_CROP_PX, c0 : c0 + GCV_CROP_PX], np.float64)
-    q = np.pad(q, [(0, n) for n in q.shape], mode="symmetric")  # mirror-periodic: no seams
-    power = np.abs(sfft.rfft2(q - q.mean(), workers=_WORKERS)) ** 2
-    k2 = np.abs(_kernel_fft(kernel, q.shape, np.float64)) ** 2
+def crop_shape(image_shape) -> tuple[int, int]:
+    """The mirrored centre crop's shape for an image of ``image_shape`` (rows, cols)."""
+    return tuple(2 * min(int(n), GCV_CROP_PX) for n in image_shape[:2])
+
+
+def kernel_grid(shape, kernel: np.ndarray, prior: str = "natural", variance=None):
+    """What every channel shares on the mirrored crop of ``shape`` (:func:`crop_shape`):
+    the rfft weights, ``|K|^2 + V``, ``V`` and ``R``."""
+    k2 = np.abs(_kernel_fft(np.asarray(kernel, np.float64), shape, np.float64)) ** 2
     v = np.zeros_like(k2) if variance is None else variance(k2.shape)
     if prior == "natural":
-        reg = _laplacian_spectrum(q.shape, np.float64)
+        reg = _laplacian_spectrum(shape, np.float64)
     else:
         reg = np.ones_like(k2)
         reg[0, 0] = 0.0
     weight = np.full(k2.shape, 2.0)  # an rfft grid: interior columns stand for two
     weight[:, 0] = 1.0
-    if q.shape[1] % 2 == 0:
+    if shape[1] % 2 == 0:
         weight[:, -1] = 1.0
-    return weight * power, weight, k2 + v, v, reg
+    return weight, k2 + v, v, reg
+
+
+def _spectra(y: np.ndarray, grid):
+    """Weighted data power ``w |Y|^2`` of the mirrored centre crop of ``y``, with ``grid``."""
+    r0 = max(0, (y.shape[0] - GCV_CROP_PX) // 2)
+    c0 = max(0, (y.shape[1] - GCV_CROP_PX) // 2)
+    q = np.asarray(y[r0 : r0 + GCV_CROP_PX, c0 : c0 + GCV_CROP_PX], np.float64)
+    q = np.pad(q, [(0, n) for n in q.shape], mode="symmetric")  # mirror-periodic: no seams
+    weight, base, v, reg = grid
+    power = np.abs(sfft.rfft2(q - q.mean(), workers=_WORKERS)) ** 2
+    return weight * power, weight, base, v, reg
 
 
 def gcv_noise(lam: float, spectra, size: int) -> float:
@@ -70,17 +82,16 @@ def gcv_score(lam: float, spectra) -> float:
     return float(np.sum(power * residual**2)) / max(trace, 1e-300) ** 2
 
 
-def gcv_regularization(
-    y: np.ndarray, kernel: np.ndarray, prior: str = "natural", variance=None
-) -> tuple[float, float]:
+def gcv_regularization(y: np.ndarray, grid) -> tuple[float, float]:
     """The ``lam`` minimising :func:`gcv_score` for one channel ``y`` (2-D), and GCV's
-    noise std there (:func:`gcv_noise`).
+    noise std there (:func:`gcv_noise`); ``grid`` from :func:`kernel_grid` on
+    :func:`crop_shape` of ``y``.
 
     Coarse search on ``GCV_LAMS``, then golden-section search in ``log lam`` between the
     best's neighbours.
     """
-    spectra = _spectra(y, np.asarray(kernel, np.float64), prior, variance)
-    size = 4 * min(y.shape[0], GCV_CROP_PX) * min(y.shape[1], GCV_CROP_PX)
+    spectra = _spectra(y, grid)
+    size = int(np.prod(crop_shape(y.shape)))
     logs = np.log(GCV_LAMS)
     scores = [gcv_score(float(np.exp(t)), spectra) for t in logs]
     best = int(np.argmin(scores))

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
+from pipeline.core.deconvolve import gcv
 from pipeline.core.deconvolve.common import (
     _LAM_MIN,
     _WORKERS,
@@ -20,7 +21,6 @@ from pipeline.core.deconvolve.common import (
     _taper_pad,
     map_channels,
 )
-from pipeline.core.deconvolve.gcv import GCV_TRUST, gcv_regularization
 from pipeline.errors import InputError
 
 
@@ -237,11 +237,10 @@ def _plan_wiener(
         scale = _prior_scale(y, valid, sigma, k, prior)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
         if auto == "gcv":  # where GCV's noise agrees with the data's (GCV_TRUST)
-            found = map_channels(
-                lambda c: gcv_regularization(y[..., c], k, prior, variance), y.shape[2]
-            )
+            grid = gcv.kernel_grid(gcv.crop_shape(y.shape), k, prior, variance)
+            found = map_channels(lambda c: gcv.gcv_regularization(y[..., c], grid), y.shape[2])
             for c, (lam_gcv, noise_gcv) in enumerate(found):
-                if sigma[c] / GCV_TRUST <= noise_gcv <= GCV_TRUST * sigma[c]:
+                if sigma[c] / gcv.GCV_TRUST <= noise_gcv <= gcv.GCV_TRUST * sigma[c]:
                     lam[c] = lam_gcv
         # never amplify white noise by more than noise_gain (issue 13), nor ever by more
         # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
