@@ -212,7 +212,8 @@ def sidecar_keys(tmp_path_factory) -> set[str]:
     keys: set[str] = set()
     with scheduler_context(threads=1):
         for directory, options in (
-            (stack, StackOptions(align="analytic", save_kernel=base / "kernel.tif")),
+            (stack, StackOptions(align="analytic", save_kernel=base / "kernel.tif",
+                                 frame_guard=True)),
             (sweep, StackOptions()),
         ):
             output = base / f"{directory.name}.tif"
