@@ -391,6 +391,23 @@ class _Domain:
 
 
 
+def spectral_grid(kernel: np.ndarray, shape: tuple[int, int], prior: str):
+    """``|K|^2``, the regulariser's spectrum (``|D|^2`` for the natural prior, else flat
+    with the mean unregularised) and the rfft weights (interior columns stand for two) on
+    an rfft grid of ``shape``, in float64."""
+    k2 = np.abs(_kernel_fft(kernel, shape, np.float64)) ** 2
+    if prior == "natural":
+        reg = _laplacian_spectrum(shape, np.float64)
+    else:
+        reg = np.ones_like(k2)
+        reg[0, 0] = 0.0
+    weight = np.full(k2.shape, 2.0)
+    weight[:, 0] = 1.0
+    if shape[1] % 2 == 0:
+        weight[:, -1] = 1.0
+    return k2, reg, weight
+
+
 def _laplacian_spectrum(shape: tuple[int, int], dtype) -> np.ndarray:
     """``|D_x(w)|^2 + |D_y(w)|^2`` of periodic forward differences on an rfft grid."""
     wy = 2.0 * np.pi * sfft.fftfreq(shape[0])[:, np.newaxis]

@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sfft
 
-from pipeline.core.deconvolve.common import _WORKERS, _kernel_fft, _laplacian_spectrum
+from pipeline.core.deconvolve.common import _WORKERS, spectral_grid
 
 GCV_CROP_PX = 256  # side of the centre crop GCV reads (mirrored to twice that: periodic)
 GCV_LAMS = np.logspace(-7.0, 1.0, 9)  # the coarse grid (decades), then refined
@@ -41,17 +41,8 @@ def crop_shape(image_shape) -> tuple[int, int]:
 def kernel_grid(shape, kernel: np.ndarray, prior: str = "natural", variance=None):
     """What every channel shares on the mirrored crop of ``shape`` (:func:`crop_shape`):
     the rfft weights, ``|K|^2 + V``, ``V`` and ``R``."""
-    k2 = np.abs(_kernel_fft(np.asarray(kernel, np.float64), shape, np.float64)) ** 2
+    k2, reg, weight = spectral_grid(np.asarray(kernel, np.float64), shape, prior)
     v = np.zeros_like(k2) if variance is None else variance(k2.shape)
-    if prior == "natural":
-        reg = _laplacian_spectrum(shape, np.float64)
-    else:
-        reg = np.ones_like(k2)
-        reg[0, 0] = 0.0
-    weight = np.full(k2.shape, 2.0)  # an rfft grid: interior columns stand for two
-    weight[:, 0] = 1.0
-    if shape[1] % 2 == 0:
-        weight[:, -1] = 1.0
     return weight, k2 + v, v, reg
 
 

@@ -20,6 +20,7 @@ from pipeline.core.deconvolve.common import (
     _per_channel,
     _taper_pad,
     map_channels,
+    spectral_grid,
 )
 from pipeline.errors import InputError
 
@@ -64,16 +65,7 @@ def _gain_grid(kernel: np.ndarray, prior: str, shape=None):
     """``|K|^2``, the regulariser's spectrum and the rfft weights on one grid."""
     if shape is None:
         shape = _fast_shape((max(256, 2 * kernel.shape[0]), max(256, 2 * kernel.shape[1])))
-    k2 = np.abs(_kernel_fft(kernel, shape, np.float64)) ** 2
-    if prior == "natural":
-        reg = _laplacian_spectrum(shape, np.float64)
-    else:
-        reg = np.ones_like(k2)
-        reg[0, 0] = 0.0
-    weight = np.full(k2.shape, 2.0)  # an rfft grid: interior columns stand for two
-    weight[:, 0] = 1.0
-    if shape[1] % 2 == 0:
-        weight[:, -1] = 1.0
+    k2, reg, weight = spectral_grid(kernel, shape, prior)
     return k2, reg, weight / weight.sum()
 
 
