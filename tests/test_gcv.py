@@ -45,6 +45,10 @@ def _gcv_of(h, dtd, y_periodic, lam) -> float:
     return n * float(residual @ residual) / float(np.trace(np.eye(n) - a)) ** 2
 
 
+def _grid(y, kernel):
+    return gcv.kernel_grid(gcv.crop_shape(y.shape, kernel.shape), kernel)
+
+
 def _asymmetric_kernel() -> np.ndarray:
     k = np.array([[0.0, 0.1, 0.0], [0.05, 0.5, 0.25], [0.0, 0.0, 0.1]])
     return k / k.sum()
@@ -55,7 +59,7 @@ def test_gcv_score_equals_the_matrix_gcv(lam):
     rng = np.random.default_rng(1)
     y = rng.uniform(0.0, 1.0, (6, 7))
     kernel = _asymmetric_kernel()
-    spectra = gcv._spectra(y, gcv.kernel_grid(gcv.crop_shape(y.shape), kernel))
+    spectra = gcv._spectra(y, _grid(y, kernel))
     mirrored = np.pad(y, [(0, 6), (0, 7)], mode="symmetric")  # the periodic domain used
     (brute,) = _brute_gcv(mirrored, kernel, [lam])
     assert gcv.gcv_score(lam, spectra) == pytest.approx(brute, rel=1e-9)
@@ -69,7 +73,7 @@ def test_gcv_regularization_finds_the_matrix_gcv_minimum():
     mirrored = np.pad(y, [(0, 5), (0, 6)], mode="symmetric")
     grid = np.logspace(-7, 1, 81)
     brute = grid[int(np.argmin(_brute_gcv(mirrored, kernel, grid)))]
-    lam, _ = gcv.gcv_regularization(y, gcv.kernel_grid(gcv.crop_shape(y.shape), kernel))
+    lam, _ = gcv.gcv_regularization(y, _grid(y, kernel))
     assert np.log10(lam) == pytest.approx(np.log10(brute), abs=0.1)
 
 
@@ -89,9 +93,22 @@ def test_gcv_lam_is_near_the_best_lam_on_a_noisy_blurred_texture():
 
     best = min(error(regularization=lam)[0] for lam in np.logspace(-5, 0, 26))
     chosen, p = error()
-    lam_gcv, noise = gcv.gcv_regularization(y, gcv.kernel_grid(gcv.crop_shape(y.shape), kernel))
+    lam_gcv, noise = gcv.gcv_regularization(y, _grid(y, kernel))
     assert 0.02 / gcv.GCV_TRUST <= noise <= 0.02 * gcv.GCV_TRUST  # trusted here
     assert float(p.params["lam"][0]) == pytest.approx(lam_gcv)
     assert chosen <= 1.05 * best
     prior, _ = error(auto="prior")
     assert chosen < prior  # the prior fit is further off here
+
+
+def test_the_crop_holds_the_kernel_or_gcv_stands_aside():
+    assert gcv.crop_shape((1536, 2048), (31, 31)) == (512, 512)
+    assert gcv.crop_shape((1536, 2048), (637, 637)) == (638, 638)  # pcb10 with a doubled span
+    assert gcv.crop_shape((100, 300), (31, 31)) == (200, 512)
+    assert gcv.crop_shape((100, 100), (301, 301)) is None
+    rng = np.random.default_rng(4)
+    y = rng.uniform(0, 1, (100, 100))
+    kernel = np.ones((151, 151)) / 151**2
+    p = plan(y, kernel, method="wiener", noise_sigma=0.01)  # the prior fit decides
+    q = plan(y, kernel, method="wiener", noise_sigma=0.01, auto="prior")
+    assert p.params["lam"] == pytest.approx(q.params["lam"])

@@ -33,9 +33,17 @@ GCV_REFINE_STEPS = 10  # golden-section steps in log lam between the best's neig
 GCV_TRUST = 2.5
 
 
-def crop_shape(image_shape) -> tuple[int, int]:
-    """The mirrored centre crop's shape for an image of ``image_shape`` (rows, cols)."""
-    return tuple(2 * min(int(n), GCV_CROP_PX) for n in image_shape[:2])
+def crop_shape(image_shape, kernel_shape) -> tuple[int, int] | None:
+    """The mirrored centre crop's shape for an image of ``image_shape`` (rows, cols): twice
+    ``GCV_CROP_PX`` (or half the kernel, if larger) per side, within the image; ``None``
+    when the image is too small for the kernel (then GCV does not apply)."""
+    shape = []
+    for n, k in zip(image_shape[:2], kernel_shape[:2]):
+        side = 2 * min(int(n), max(GCV_CROP_PX, (int(k) + 1) // 2))
+        if side < k:
+            return None
+        shape.append(side)
+    return tuple(shape)
 
 
 def kernel_grid(shape, kernel: np.ndarray, prior: str = "natural", variance=None):
@@ -48,11 +56,11 @@ def kernel_grid(shape, kernel: np.ndarray, prior: str = "natural", variance=None
 
 def _spectra(y: np.ndarray, grid):
     """Weighted data power ``w |Y|^2`` of the mirrored centre crop of ``y``, with ``grid``."""
-    r0 = max(0, (y.shape[0] - GCV_CROP_PX) // 2)
-    c0 = max(0, (y.shape[1] - GCV_CROP_PX) // 2)
-    q = np.asarray(y[r0 : r0 + GCV_CROP_PX, c0 : c0 + GCV_CROP_PX], np.float64)
-    q = np.pad(q, [(0, n) for n in q.shape], mode="symmetric")  # mirror-periodic: no seams
     weight, base, v, reg = grid
+    rows, cols = reg.shape[0] // 2, (reg.shape[1] - 1)  # the crop (the grid is rfft's)
+    r0, c0 = (y.shape[0] - rows) // 2, (y.shape[1] - cols) // 2
+    q = np.asarray(y[r0 : r0 + rows, c0 : c0 + cols], np.float64)
+    q = np.pad(q, [(0, n) for n in q.shape], mode="symmetric")  # mirror-periodic: no seams
     power = np.abs(sfft.rfft2(q - q.mean(), workers=_WORKERS)) ** 2
     return weight * power, weight, base, v, reg
 
@@ -76,13 +84,13 @@ def gcv_score(lam: float, spectra) -> float:
 def gcv_regularization(y: np.ndarray, grid) -> tuple[float, float]:
     """The ``lam`` minimising :func:`gcv_score` for one channel ``y`` (2-D), and GCV's
     noise std there (:func:`gcv_noise`); ``grid`` from :func:`kernel_grid` on
-    :func:`crop_shape` of ``y``.
+    :func:`crop_shape` of ``y`` and the kernel.
 
     Coarse search on ``GCV_LAMS``, then golden-section search in ``log lam`` between the
     best's neighbours.
     """
     spectra = _spectra(y, grid)
-    size = int(np.prod(crop_shape(y.shape)))
+    size = grid[3].shape[0] * 2 * (grid[3].shape[1] - 1)
     logs = np.log(GCV_LAMS)
     scores = [gcv_score(float(np.exp(t)), spectra) for t in logs]
     best = int(np.argmin(scores))

@@ -228,8 +228,9 @@ def _plan_wiener(
     if lam is None:
         scale = _prior_scale(y, valid, sigma, k, prior)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
-        if auto == "gcv":  # where GCV's noise agrees with the data's (GCV_TRUST)
-            grid = gcv.kernel_grid(gcv.crop_shape(y.shape), k, prior, variance)
+        shape = gcv.crop_shape(y.shape, k.shape)
+        if auto == "gcv" and shape is not None:  # where its noise agrees with the data's
+            grid = gcv.kernel_grid(shape, k, prior, variance)
             found = map_channels(lambda c: gcv.gcv_regularization(y[..., c], grid), y.shape[2])
             for c, (lam_gcv, noise_gcv) in enumerate(found):
                 if sigma[c] / gcv.GCV_TRUST <= noise_gcv <= gcv.GCV_TRUST * sigma[c]:
