@@ -49,14 +49,16 @@ def test_streamed_range_and_sharpest_equal_brute_force(order):
     focus = np.stack([fs.focus_measure(fs.to_codes(f)) for f in frames])
     b = fs.FOCUS_BLOCK_PX
     assert focus.shape[1:] == (-(-40 // b), -(-56 // b))  # one value per block
-    # per pixel: the frame whose block holds the best focus
+    # per pixel: the frame whose block holds the best focus (the stream interpolates the
+    # focus differences between block centres, so pixels near a choice's boundary may
+    # take the other frame)
     blocks = np.argmax(focus, axis=0)
     best = blocks[np.arange(40)[:, None] // b, np.arange(56)[None, :] // b]
     want = np.take_along_axis(stacked, best[None, ..., None], axis=0)[0]
-    top2 = np.sort(focus, axis=0)[-2:]
-    unique = (top2[1] > top2[0])[np.arange(40)[:, None] // b, np.arange(56)[None, :] // b]
-    assert unique.mean() > 0.97  # a float16 tie may keep either frame
-    np.testing.assert_allclose(fs.from_codes(got.sharpest)[unique], want[unique], atol=code)
+    agree = np.all(np.abs(fs.from_codes(got.sharpest) - want) <= code, axis=2)
+    assert agree.mean() > 0.9
+    inside = (ndimage.maximum_filter(best, 9) == best) & (ndimage.minimum_filter(best, 9) == best)
+    assert inside.sum() > 300 and agree[inside].all()  # a block or more from a boundary: exact
     # frame j is the sharpest in band j (not the same frame everywhere)
     for j in range(len(frames)):
         assert np.mean(best[8:-8, j * 11 + 4 : (j + 1) * 11 - 4] == j) > 0.9

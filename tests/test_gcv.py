@@ -112,3 +112,12 @@ def test_the_crop_holds_the_kernel_or_gcv_stands_aside():
     p = plan(y, kernel, method="wiener", noise_sigma=0.01)  # the prior fit decides
     q = plan(y, kernel, method="wiener", noise_sigma=0.01, auto="prior")
     assert p.params["lam"] == pytest.approx(q.params["lam"])
+
+
+def test_gcv_with_a_kernel_variance_wider_than_the_crop():
+    rng = np.random.default_rng(5)
+    y = rng.uniform(0, 1, (700, 700))
+    kernel = np.ones((301, 301)) / 301**2  # its variance's autocorrelation: 601 px
+    samples = np.stack([kernel, np.roll(kernel, 3, axis=1), np.roll(kernel, -2, axis=0)])
+    p = plan(y, kernel, method="wiener", noise_sigma=0.01, kernel_samples=samples)
+    assert np.all(np.isfinite(p.params["lam"]))

@@ -228,7 +228,9 @@ def _plan_wiener(
     if lam is None:
         scale = _prior_scale(y, valid, sigma, k, prior)
         lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
-        shape = gcv.crop_shape(y.shape, k.shape)
+        # the kernel variance is the spectrum of an autocorrelation, 2k - 1 px wide
+        support = k.shape if variance is None else tuple(2 * n - 1 for n in k.shape)
+        shape = gcv.crop_shape(y.shape, support)
         if auto == "gcv" and shape is not None:  # where its noise agrees with the data's
             grid = gcv.kernel_grid(shape, k, prior, variance)
             found = map_channels(lambda c: gcv.gcv_regularization(y[..., c], grid), y.shape[2])
