@@ -171,11 +171,15 @@ def test_wiener_max_noise_caps_the_results_noise():
     inner = (slice(40, -40), slice(40, -40))
 
     def output_noise(**options):  # the same linear filter on the clean and noisy image
-        p = plan(noisy, kernel, method="wiener", noise_sigma=sigma, **options)
+        p = plan(noisy, kernel, method="wiener", noise_sigma=sigma, auto="prior", **options)
         return np.std((restore(noisy, p) - restore(clean, p))[inner])
 
     assert output_noise() > 2.0 * sigma  # the prior fit alone amplifies the noise
     assert output_noise(max_noise=1.5 * sigma) == pytest.approx(1.5 * sigma, rel=0.1)
+    # where GCV's lam is taken (its noise agrees with sigma) the ceiling does not apply
+    gcv_plan = plan(noisy, kernel, method="wiener", noise_sigma=sigma)
+    capped = plan(noisy, kernel, method="wiener", noise_sigma=sigma, max_noise=1.5 * sigma)
+    np.testing.assert_array_equal(capped.params["lam"], gcv_plan.params["lam"])
 
 
 def test_the_main_job_with_the_guard_stays_within_the_frames(tmp_path):
