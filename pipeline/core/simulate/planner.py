@@ -596,7 +596,7 @@ def _magnification(profile, layers, lens, model, spectra, p_ref, shape, visible,
     than one at the top. ``e^2`` at a pixel's depth is that of the representatives it is
     rendered with, in the renderer's proportions (for a hat blend of two kernels the
     error of the blend is at most that mean, ``|.|^2`` being convex). The estimate is the
-    expected error over 1/f textures; one texture's error scatters about it (on a 8x32
+    expected error over 1/f textures; one texture's error scatters about it (on an 8x32
     px capture by about 25%).
     """
     t0, t1 = float(profile.times_s[0]), float(profile.times_s[-1])
