@@ -303,7 +303,10 @@ def test_depth_down_the_rows_rolling_within_estimate(tol):
     rows 0-6 (0.00056-0.00122) all take its kernel (0.006-0.012 apart in kernel_error over
     row 0's window; ``planner._hat_error`` checks only the farthest, 0.00056). Adding a
     representative at row 1's depth (0.00067) takes row 0 to 0.0011; one at row 0's own
-    depth alone leaves it at 0.033."""
+    depth alone leaves it at 0.033. So it is row 1's light spilling into row 0 with a
+    wider kernel: a band keeps one row, so the light that kernel takes out of row 1 is not
+    seen and the error is one-sided (an offset along row 0), where ``kernel_error`` (a
+    whole image at one depth) sees a zero-mean difference."""
     scene, camera, ref, contrast = depth_down_the_rows_rolling()
     pl = simulate.plan(scene, camera, tolerance=tol)
     out = simulate.render(scene, camera, plan_=pl)
