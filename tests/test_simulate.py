@@ -205,6 +205,59 @@ def test_magnification_skip_and_apply():
     assert len(pl.bands[0].steps) == 1 and pl.bands[0].steps[0].scale == pytest.approx(12.9 / 12.6)
 
 
+def test_shifted_sum_is_the_sum_of_shifted_kernel_spectra():
+    spectra = simulate.planner._Spectra(256)
+    rng = np.random.default_rng(0)
+    kernels, shifts = rng.random((5, 9, 9)), rng.normal(0.0, 2.0, (5, 2))
+    direct = sum(spectra.of(k) * spectra.shift(*d) for k, d in zip(kernels, shifts))
+    got = spectra.shifted_sum(kernels, shifts)
+    assert np.max(np.abs(got - direct)) < 1e-12 * np.max(np.abs(direct))
+
+
+def test_magnification_estimate_is_the_pixel_rms_of_each_depths_error():
+    """A band's magnification estimate is the RMS over its pixels of the error at each
+    pixel's own depth and distance from the centre (computed here with one FFT per time
+    node and the shift phases directly; the planner sums them as separable DFTs): a 20 ms
+    window of a sweep over four columns of depths, whose errors differ 18x; two rows at the
+    top and two at the centre (which move less)."""
+    planner = simulate.planner
+    rows, cols, tol = 24, 32, 1e-4
+    depths = np.array([600.0, 750.0, 900.0, 1200.0])
+    inv_map = 1.0 / (np.repeat(depths, cols // 4)[None, :] * np.ones((rows, 1)))
+    window = Profile([0.0, 0.1], [optics.image_distance(12.5, 1500.0), 12.83]).window(0.04, 0.06)
+    p_ref = 12.7
+    invs = np.sort(1.0 / depths)
+    layers = tuple(simulate.Layer(lo, hi, hi) for lo, hi in zip([-math.inf, *invs[:-1]], invs))
+    spectra = planner._Spectra(256)
+    edges = np.linspace(0.04, 0.06, planner._MAG_NODES + 1)
+    p = window.position(0.5 * (edges[1:] + edges[:-1]))
+    radius = np.array([cols, rows]) / math.sqrt(12)
+
+    def error_at(inv, n):
+        moved = radius * (p / p_ref - 1)[:, None]
+        step_of = np.arange(p.size) * n // p.size
+        moved -= np.array([moved[step_of == s].mean(axis=0) for s in range(n)])[step_of]
+        blur = LENS.blur_px(optics.image_distance(12.5, 1.0 / inv), p)
+        half = psf.kernel_size(float(blur.max())) // 2
+        diff = sum(
+            spectra.of(psf.raster_pillbox(b, half)) * (spectra.shift(*d) - 1)
+            for b, d in zip(blur, moved)
+        )
+        return spectra.error(diff / p.size)
+
+    for r0 in (0, 11):
+        band = inv_map[r0 : r0 + 2]
+        steps, estimate, applied, n = planner._magnification(
+            window, layers, LENS, "pillbox", spectra, p_ref, (rows, cols), band, r0, tol, hat=True
+        )
+        assert applied and len(steps) == n > 1
+        e = {inv: error_at(inv, n) for inv in invs}
+        assert max(e.values()) > 10 * min(e.values())
+        yy, xx = np.indices(band.shape)
+        rho2 = (yy + r0 - (rows - 1) / 2) ** 2 + (xx - (cols - 1) / 2) ** 2
+        pixel_e2 = np.vectorize(e.get)(band) ** 2 * rho2 / (radius @ radius)
+        assert estimate == pytest.approx(math.sqrt(pixel_e2.mean()), rel=1e-9)
+
 def test_rolling_shutter_bands_vs_per_row():
     rolling = dataclasses.replace(LENS, shutter="rolling", line_time_us=500.0)
     img = texture((24, 20), seed=7)

@@ -321,6 +321,9 @@ def main() -> int:
     ap.add_argument("--tolerances", nargs="*", type=float)
     ap.add_argument("--skip-memory", action="store_true")
     ap.add_argument("--out", default="report", help="name of the .md/.json in " + str(OUT))
+    ap.add_argument("--timeout-s", type=float, default=TIMEOUT_S,
+                    help=f"per case and tolerance (default {TIMEOUT_S} s; a loaded machine "
+                    "needs more for the rolling case)")
     args = ap.parse_args()
     if args.one:
         print(json.dumps(one(args.one[0], float(args.one[1]))))
@@ -335,10 +338,11 @@ def main() -> int:
     tols = args.tolerances or TOLERANCES
     rows, conv, mem = [], [], []
     for name in names:
-        conv.append({"case": name, **child(["--convergence", name])})
+        conv.append({"case": name, **child(["--convergence", name], args.timeout_s)})
         for tol in tols:
             t = time.perf_counter()
-            r = {"case": name, "tolerance": tol, **child(["--one", name, repr(tol)])}
+            r = {"case": name, "tolerance": tol,
+                 **child(["--one", name, repr(tol)], args.timeout_s)}
             rows.append(r)
             print(f"{name} {tol:g}: {time.perf_counter() - t:.0f} s "
                   f"est {r.get('estimate')} measured {r.get('measured')} "
