@@ -77,15 +77,15 @@ def test_an_overlap_as_wide_as_an_axis_makes_one_tile_along_it(calls):
 
 def test_frames_up_to_the_whole_frame_limit_are_restored_whole(calls, monkeypatch):
     y = _image((300, 480), seed=1)
-    p = dc.plan(y, KERNEL, noise_sigma=0.1)
+    p = dc.plan(y, KERNEL, noise_sigma=0.1, auto="prior")  # the geometry below is for its lam
     tile = tiling.TILE_OVER_REACH * (2 * p.depth + TAPER_PX)  # times (reach + taper)
     assert 0 < p.depth and tile < 300 and 480 % tile >= p.depth and 300 - tile >= p.depth
     monkeypatch.setattr(tiling, "WHOLE_FRAME_PX", 300 * 480)
-    whole = deconvolve_tiled(y, KERNEL, tile_px=64, noise_sigma=0.1)
+    whole = deconvolve_tiled(y, KERNEL, tile_px=64, noise_sigma=0.1, auto="prior")
     assert calls == [((300, 480), True)]  # in this thread, no dask
     calls.clear()
     monkeypatch.setattr(tiling, "WHOLE_FRAME_PX", 300 * 480 - 1)
-    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, noise_sigma=0.1)
+    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, noise_sigma=0.1, auto="prior")
     assert sorted(s for s, _ in calls) == _tiles(300, 480, tile, p.depth)
     np.testing.assert_allclose(tiled, whole, atol=1e-4)
 
