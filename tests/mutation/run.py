@@ -219,6 +219,7 @@ FULL["parallel/tiling.py"] = [_TL, _AS, "tests/test_tiling_geometry.py"]
 # ---- fast selections (helper mutX): psf, wiener/common, workflow run/plan ---------------------
 _PS = "tests/test_psf.py"
 MODULES["core/psf.py"] = [  # the psf tests of both files, cheapest first (1434 mutants)
+    "tests/test_psf_exact.py",
     *(f"{_PS}::{t}" for t in (
         "test_radial_eq6_eq7_match_quadrature_of_eq5",
         "test_encircled_energy_is_integral_of_radial_profile",
@@ -241,8 +242,9 @@ MODULES["core/psf.py"] = [  # the psf tests of both files, cheapest first (1434 
         "test_pillbox_raster_is_disk_area[7.3]", "test_pillbox_raster_is_disk_area[20.0]",
         "test_analytic_kernel_matches_supersampled_radial_profile")),
 ]
-FULL["core/psf.py"] = [_PS, _K]
+FULL["core/psf.py"] = [_PS, _K, "tests/test_psf_exact.py"]
 _DEC = [  # every test of the Wiener path, cheapest first (measured, 2026-11-26)
+    "tests/test_wiener_reference.py",
     "tests/test_deconvolve.py::test_non_finite_image_rejected",
     "tests/test_deconvolve.py::test_bad_kernel_rejected",
     "tests/test_deconvolve.py::test_bad_method_and_options_rejected",

@@ -1,0 +1,69 @@
+"""PSF values worked out by hand (issue 11, mutation kills of ``core/psf.py``).
+
+Each expected value is computed here from the lens PSFs' definitions (Eq. 3: a disk of
+diameter ``b`` with density ``4 / (pi b^2)``; Eq. 4: ``2 / (pi c^2) exp(-2 r^2 / c^2)``,
+``c = g b``), never by the module's code path: stationary pieces (pauses), ``g != 1``,
+mixed still and moving pieces, and the size and threshold edges.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from pipeline.core import psf
+from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile
+from pipeline.errors import InputError
+
+STILL = [(0.1, 4.0, 4.0)]  # a pause at a blur of 4 px
+
+
+def test_a_still_pillbox_is_eq3():
+    assert psf.ipsf_radial(1.0, STILL) == pytest.approx(1 / (4 * math.pi), rel=1e-12)
+    assert psf.ipsf_radial(2.5, STILL) == 0.0  # outside the 2 px radius
+    assert psf.encircled_energy(1.0, STILL) == pytest.approx(0.25, rel=1e-12)  # (1/2)^2
+    assert psf.encircled_energy(3.0, STILL) == pytest.approx(1.0, rel=1e-12)
+
+
+def test_a_still_gaussian_is_eq4_with_its_g():
+    # g = 0.5: c = 2 px, density 2/(4 pi) exp(-2/4) at r = 1
+    value = psf.ipsf_radial(1.0, STILL, model="gaussian", gaussian_g=0.5)
+    assert value == pytest.approx(math.exp(-0.5) / (2 * math.pi), rel=1e-12)
+    energy = psf.encircled_energy(1.0, STILL, model="gaussian", gaussian_g=0.5)
+    assert energy == pytest.approx(1 - math.exp(-0.5), rel=1e-12)
+
+
+def test_a_pause_and_a_moving_piece_average_by_time():
+    # pillbox, rho = 1: the pause holds (1/2)^2 = 1/4 of its energy; the piece from b = 2
+    # to 6 px holds (1/4) int_2^6 4/b^2 db = 1/3; weighted 0.2 : 0.1
+    pieces = [(0.2, 4.0, 4.0), (0.1, 2.0, 6.0)]
+    expected = (0.2 * 0.25 + 0.1 / 3) / 0.3
+    assert psf.encircled_energy(1.0, pieces) == pytest.approx(expected, rel=1e-12)
+    # density at r = 1: pause 1/(4 pi); moving (1/4) int_2^6 4/(pi b^2) db = 1/(3 pi)
+    expected = (0.2 / (4 * math.pi) + 0.1 / (3 * math.pi)) / 0.3
+    assert psf.ipsf_radial(1.0, pieces) == pytest.approx(expected, rel=1e-12)
+
+
+def test_a_one_pixel_kernel_is_allowed():
+    lens = Lens(12.5, 1.4, 4.65, 640, 480)
+    profile = Profile([0.0, 0.1], [12.6, 12.7])
+    for model in ("pillbox", "gaussian"):
+        kernel = psf.integrated_psf(lens, 1000.0, profile, model=model, size=1)
+        assert kernel.shape == (1, 1) and kernel[0, 0] == 1.0
+        assert psf.lens_psf(lens, 1000.0, 12.7, model=model, size=1).tolist() == [[1.0]]
+    for bad in (0, -1, 2, 1.0, True):
+        with pytest.raises(InputError, match="positive odd integer"):
+            psf.integrated_psf(lens, 1000.0, profile, size=bad)
+    np.testing.assert_equal(psf.kernel_size(0.0), 3)
+
+
+@pytest.mark.parametrize("model", ["pillbox", "gaussian"])
+def test_small_blur_changes_match_a_fine_quadrature(model):
+    """Below SMALL_CHANGE_PX a piece is the 6-node Gauss-Legendre mean of exact rasters;
+    against a 0.01 px, 12-node quadrature of Eq. 5: ~1e-14 at b = 2-2.45 px and 2e-5
+    (L1) at 1-1.49 px, where a 5-node rule is at 3e-12 and 1.1e-4."""
+    for (b0, b1), tol in (((2.0, 2.45), 1e-13), ((1.0, 1.49), 5e-5)):
+        kernel = psf._analytic_ipsf([(1.0, b0, b1)], 12, model, 1.0)
+        fine = psf._numeric_ipsf([(1.0, b0, b1)], 12, model, 1.0, order=12, step_px=0.01)
+        assert np.abs(kernel - fine).sum() < tol

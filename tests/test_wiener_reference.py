@@ -1,0 +1,197 @@
+"""Wiener deconvolution against an independent implementation (issue 11, mutation kills of
+``core/deconvolve/wiener.py`` and ``common.py``).
+
+The reference below builds the filter ``conj(K) / (|K|^2 + V + lam |D|^2)`` with full
+complex FFTs (``np.fft.fft2``), the kernel rolled to the origin by hand and ``|D|^2``
+from the FFTs of the two forward-difference stencils, on the frame's mirror-periodic
+domain (``[y, flip(y)]`` in each direction). That is the module's boundary model for a
+filter that reaches across the frame; for a shorter filter the module reflects the frame
+only as far as the filter reaches and fades beyond, which changes the result by less
+than the filter's tail (1e-5 of the data range). Kernels are one-sided, so a flip or a
+missing conjugate shows.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import numpy as np
+import pytest
+
+from pipeline.core import deconvolve as dc
+from pipeline.core.deconvolve import common
+from pipeline.errors import InputError
+
+# the module, not the package's ``wiener`` function of the same name
+wiener = importlib.import_module("pipeline.core.deconvolve.wiener")
+
+
+def _on_grid(kernel: np.ndarray, shape) -> np.ndarray:
+    """``kernel`` on a periodic grid of ``shape``, its centre pixel at (0, 0)."""
+    grid = np.zeros(shape)
+    grid[: kernel.shape[0], : kernel.shape[1]] = kernel
+    return np.roll(grid, (-(kernel.shape[0] // 2), -(kernel.shape[1] // 2)), axis=(0, 1))
+
+
+def _difference_power(shape) -> np.ndarray:
+    """``|D_x|^2 + |D_y|^2`` from the FFTs of the stencils x[i+1] - x[i]."""
+    dx, dy = np.zeros(shape), np.zeros(shape)
+    dx[0, 0], dx[0, -1] = -1.0, 1.0  # (D x)[j] = x[j+1] - x[j]: correlation with [-1, 1]
+    dy[0, 0], dy[-1, 0] = -1.0, 1.0
+    return np.abs(np.fft.fft2(dx)) ** 2 + np.abs(np.fft.fft2(dy)) ** 2
+
+
+def reference_wiener(y, kernel, lam, prior="natural", samples=None):
+    rows, cols = y.shape
+    mirrored = np.block([[y, y[:, ::-1]], [y[::-1, :], y[::-1, ::-1]]])
+    shape = mirrored.shape
+    k_fft = np.fft.fft2(_on_grid(kernel, shape))
+    if prior == "natural":
+        reg = _difference_power(shape)
+    else:
+        reg = np.ones(shape)
+        reg[0, 0] = 0.0
+    variance = 0.0
+    if samples is not None:
+        variance = np.mean(
+            [np.abs(np.fft.fft2(_on_grid(s, shape)) - k_fft) ** 2 for s in samples], axis=0
+        )
+    x = np.conj(k_fft) * np.fft.fft2(mirrored) / (np.abs(k_fft) ** 2 + variance + lam * reg)
+    return np.fft.ifft2(x).real[:rows, :cols]
+
+
+def _one_sided_kernel(rows=5, cols=7):
+    k = np.zeros((rows, cols))
+    k[rows // 2, cols // 2 :] = np.arange(cols - cols // 2, 0, -1)  # a comet to the right
+    k[rows // 2 + 1 :, cols // 2] = 0.5  # and a short tail down
+    return k / k.sum()
+
+
+def _scene(shape, seed=0):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0 : shape[0], 0 : shape[1]]
+    smooth = 0.5 + 0.2 * np.sin(0.3 * xx + 0.1 * yy) * np.cos(0.17 * yy)
+    return smooth + 0.05 * rng.standard_normal(shape)
+
+
+@pytest.mark.parametrize("prior", ["natural", "white"])
+def test_a_filter_wider_than_the_frame_is_the_mirror_periodic_wiener_filter(prior):
+    y = _scene((22, 30))
+    kernel = _one_sided_kernel()
+    lam = 1e-3
+    p = dc.plan(y, kernel, method="wiener", noise_sigma=0.01, regularization=lam, prior=prior)
+    assert p.params["pad"] >= min(y.shape)  # the mirror-periodic domain, no taper
+    got = dc.restore(y, p)
+    assert np.allclose(got, reference_wiener(y, kernel, lam, prior), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("shape", [(96, 112), (101, 87)])
+def test_reflect_and_fade_agrees_with_the_mirror_periodic_filter(shape):
+    """(The white prior's filter reaches across any frame: its DC is not regularised.)"""
+    prior = "natural"
+    y = _scene(shape, seed=1)
+    kernel = _one_sided_kernel()
+    lam = 0.05
+    p = dc.plan(y, kernel, method="wiener", noise_sigma=0.01, regularization=lam, prior=prior)
+    assert p.params["pad"] < min(y.shape)  # the reflect-then-fade domain
+    got = dc.wiener(y, kernel, noise_sigma=0.01, regularization=lam, prior=prior)
+    expected = reference_wiener(y, kernel, lam, prior)
+    assert np.abs(got - expected).max() < 2e-5  # the filter's tail beyond its reach
+
+
+def test_kernel_samples_add_their_spread_to_the_denominator():
+    y = _scene((40, 36), seed=2)
+    kernel = _one_sided_kernel()
+    samples = np.stack([kernel, kernel[::-1, ::-1], np.roll(kernel, 1, axis=1)])
+    mean = samples.mean(axis=0)
+    got = dc.wiener(y, mean, noise_sigma=0.01, regularization=0.05, kernel_samples=samples)
+    expected = reference_wiener(y, mean, 0.05, samples=samples)
+    assert np.abs(got - expected).max() < 2e-5
+    plain = dc.wiener(y, mean, noise_sigma=0.01, regularization=0.05)
+    assert np.abs(plain - expected).max() > 1e-3  # the variance term matters here
+
+
+def _gain_by_parseval(kernel, lam, prior, shape):
+    """sqrt(mean |G|^2) over the full grid = sqrt(sum h^2) of the impulse response."""
+    k_fft = np.fft.fft2(_on_grid(kernel, shape))
+    if prior == "natural":
+        reg = _difference_power(shape)
+    else:
+        reg = np.ones(shape)
+        reg[0, 0] = 0.0
+    h = np.fft.ifft2(np.conj(k_fft) / (np.abs(k_fft) ** 2 + lam * reg)).real
+    return float(np.sqrt(np.sum(h**2)))
+
+
+@pytest.mark.parametrize("prior", ["natural", "white"])
+@pytest.mark.parametrize("shape", [(64, 48), (50, 45), (33, 64)])
+def test_white_noise_gain_is_the_impulse_responses_norm(prior, shape):
+    kernel = _one_sided_kernel()
+    for lam in (1e-4, 1e-2, 1.0):
+        got = wiener.white_noise_gain(kernel, lam, prior, shape)
+        assert got == pytest.approx(_gain_by_parseval(kernel, lam, prior, shape), rel=1e-10)
+
+
+def test_white_noise_gain_by_default_grid_is_a_fine_one():
+    kernel = _one_sided_kernel()
+    got = wiener.white_noise_gain(kernel, 1e-3)
+    assert got == pytest.approx(_gain_by_parseval(kernel, 1e-3, "natural", (256, 256)), rel=1e-3)
+
+
+@pytest.mark.parametrize("prior", ["natural", "white"])
+def test_lam_for_noise_gain_is_the_smallest_lam_within_the_target(prior):
+    kernel = _one_sided_kernel()
+    for target in (1.2, 2.5):  # 3.6 at the floor
+        lam = wiener.lam_for_noise_gain(kernel, target, prior)
+        assert wiener.white_noise_gain(kernel, lam, prior) <= target
+        assert wiener.white_noise_gain(kernel, lam / 1.03, prior) > target  # ~1% bisection
+    # a point kernel never amplifies noise: the floor is enough
+    assert wiener.lam_for_noise_gain(np.ones((1, 1)), 1.0, prior) == common._LAM_MIN
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="noise_gain"):
+            wiener.lam_for_noise_gain(kernel, bad, prior)
+
+
+def test_the_automatic_lam_is_never_below_the_noise_gain_limit():
+    y = _scene((64, 64), seed=3)
+    kernel = np.full((9, 9), 1 / 81)  # a box: gain 116 at the floor of lam
+    for gain in (2.0, 5.0):
+        p = dc.plan(y, kernel, method="wiener", noise_sigma=1e-6, noise_gain=gain)
+        assert wiener.white_noise_gain(kernel, float(p.params["lam"][0])) <= gain
+    p = dc.plan(y, kernel, method="wiener", noise_sigma=1e-6)  # the ceiling, 10
+    assert wiener.white_noise_gain(kernel, float(p.params["lam"][0])) <= wiener.MAX_NOISE_GAIN
+    assert wiener.white_noise_gain(kernel, float(p.params["lam"][0]) / 1.03) > 9.9
+
+
+@pytest.mark.parametrize("frame", [(96, 112), (101, 87), (500, 333), (2000, 3001)])
+def test_the_fft_grid_holds_the_reach_and_the_fade_and_little_more(frame):
+    """Issue 15: the grid is the frame plus the reach and the fade on each side, rounded
+    up to a fast length, not much larger (a 2250x2700 grid where 1890x2400 does)."""
+    kernel = _one_sided_kernel()
+    for pad in (0, 7, 40):
+        grid, taper = wiener._wiener_grid(frame, kernel, pad)
+        assert taper == wiener.TAPER_PX
+        for side, n in zip(frame, grid, strict=True):
+            need = side + 2 * (pad + wiener.TAPER_PX)
+            assert need <= n <= 1.15 * need and n % 2 == 0
+    grid, taper = wiener._wiener_grid(frame, kernel, min(frame))
+    assert grid == (2 * frame[0], 2 * frame[1]) and taper is None
+
+
+@pytest.mark.parametrize("prior", ["natural", "white"])
+def test_the_filter_whose_reach_is_measured_is_the_filter_applied(prior):
+    kernel = _one_sided_kernel()
+    shape = (40, 36)
+    samples = np.stack([kernel, kernel[::-1, ::-1]])
+    half = shape[1] // 2 + 1
+    k_fft = np.fft.rfft2(_on_grid(kernel, shape))
+    d2 = _difference_power(shape)[:, :half]
+    reg = d2 if prior == "natural" else np.where(np.arange(d2.size).reshape(d2.shape) == 0,
+                                                 0.0, 1.0)
+    for variance, v in ((None, 0.0), (dc.kernel_variance(samples, kernel), None)):
+        if v is None:
+            v = np.mean([np.abs(np.fft.rfft2(_on_grid(s, shape)) - k_fft) ** 2
+                         for s in samples], axis=0)
+        got = wiener._wiener_transfer(0.01, prior, variance)(k_fft, d2)
+        expected = np.conj(k_fft) / (np.abs(k_fft) ** 2 + v + 0.01 * reg)
+        assert np.allclose(got, expected, rtol=1e-12, atol=1e-12)
