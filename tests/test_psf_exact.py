@@ -67,3 +67,25 @@ def test_small_blur_changes_match_a_fine_quadrature(model):
         kernel = psf._analytic_ipsf([(1.0, b0, b1)], 12, model, 1.0)
         fine = psf._numeric_ipsf([(1.0, b0, b1)], 12, model, 1.0, order=12, step_px=0.01)
         assert np.abs(kernel - fine).sum() < tol
+
+
+@pytest.mark.parametrize("model", ["pillbox", "gaussian"])
+def test_a_blur_change_of_1e_12_px_is_a_pause(model):
+    """The closed forms divide by the blur change: a change at round-off level is taken
+    as a pause (Eq. 3 / Eq. 4 at the mean blur), not as 0/0 of two near-equal terms."""
+    tiny = [(0.1, 4.0, 4.0 + 1e-12)]
+    for r in (0.5, 1.0, 1.9):
+        still = psf.ipsf_radial(r, STILL, model=model, gaussian_g=0.5)
+        assert psf.ipsf_radial(r, tiny, model=model, gaussian_g=0.5) == pytest.approx(
+            still, rel=1e-9
+        )
+        still = psf.encircled_energy(r, STILL, model=model, gaussian_g=0.5)
+        assert psf.encircled_energy(r, tiny, model=model, gaussian_g=0.5) == pytest.approx(
+            still, rel=1e-9
+        )
+
+
+def test_kernel_size_refuses_negative_and_non_finite_blurs():
+    for bad in (-0.5, -1e-9, float("nan"), float("inf")):
+        with pytest.raises(InputError, match="max_blur_px"):
+            psf.kernel_size(bad)
