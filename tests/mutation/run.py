@@ -289,6 +289,48 @@ MODULES["core/deconvolve/wiener.py"] = _DEC
 FULL["core/deconvolve/wiener.py"] = _DEC
 MODULES["core/deconvolve/common.py"] = [*_DEC, _TL]
 FULL["core/deconvolve/common.py"] = [*_DEC, _TL]
+_WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
+    "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
+    "tests/test_issue11_kills.py::test_a_deleted_sidecar_triggers_a_rerun",
+    "tests/test_workflow.py::test_symlink_escape_is_refused",
+    "tests/test_workflow.py::test_parse_interval",
+    "tests/test_workflow.py::test_shipped_examples_validate",
+    "tests/test_workflow.py::test_run_lock_file_names_the_holder_and_is_emptied_on_release",
+    "tests/test_workflow_reliability.py::test_a_valueerror_from_numpy_is_not_a_permanent_input_error",
+    "tests/test_workflow.py::test_files_grouped_into_stacks_by_regex",
+    "tests/test_workflow.py::test_name_collision_is_refused",
+    "tests/test_workflow.py::test_hash_cache_answers_while_size_mtime_and_inode_match",
+    "tests/test_workflow.py::test_a_transaction_that_raises_is_rolled_back",
+    "tests/test_issue11_kills.py::test_hash_cache_sees_a_same_size_edit",
+    "tests/test_issue11_kills.py::test_a_run_with_failures_is_recorded_failed",
+    "tests/test_workflow_reliability.py::test_an_empty_drop_folder_is_nothing_to_do_yet_for_a_scheduled_workflow",
+    "tests/test_workflow_reliability.py::test_every_with_an_empty_drop_folder_is_nothing_to_do_yet",
+    "tests/test_workflow_reliability.py::test_a_closed_port_fails_at_once_and_the_ledger_is_not_left_running",
+    "tests/test_workflow.py::test_lock_is_released_by_a_dead_holder",
+    "tests/test_workflow.py::test_ledger_round_trips_runs_stacks_and_attempts",
+    "tests/test_workflow_reliability.py::test_dry_run_prints_its_plan_to_stdout_even_when_quiet",
+    "tests/test_workflow_reliability.py::test_file_groups_never_take_the_workflows_own_outputs",
+    "tests/test_workflow.py::test_ledger_opens_schema_1_files_and_refuses_other_schemas_and_non_sqlite",
+    "tests/test_workflow_reliability.py::test_an_output_folder_inside_the_input_glob_is_not_a_stack",
+    "tests/test_workflow_reliability.py::test_an_output_corrupted_in_place_is_processed_again",
+    "tests/test_workflow_reliability.py::test_a_banner_from_another_service_is_named",
+    "tests/test_workflow_reliability.py::test_an_output_folder_above_the_inputs_excludes_nothing",
+    "tests/test_workflow.py::test_output_names_from_inputs_never_escape",
+    "tests/test_workflow_reliability.py::test_an_interrupted_run_does_not_leave_the_ledger_running",
+    "tests/test_workflow_reliability.py::test_disk_full_failures_are_retried_on_the_next_run",
+    "tests/test_workflow.py::test_invalid_workflows_are_refused_before_any_work",
+    "tests/test_workflow.py::test_every_loops_with_the_same_guarantees",
+    "tests/test_workflow.py::test_changes_reprocess_affected_stacks_only",
+    "tests/test_workflow.py::test_bad_stacks_fail_alone_with_clear_errors",
+]
+_WF_SLOW = [  # 5-13 s each (a killed scheduler, a dashboard port, a killed run): FULL only
+    "tests/test_workflow_reliability.py::test_a_dashboard_port_is_reported_as_not_a_scheduler_in_seconds",
+    "tests/test_workflow_reliability.py::test_a_scheduler_killed_mid_run_is_one_error_and_the_stacks_are_redone",
+    "tests/test_workflow.py::test_killed_run_resumes_without_recomputing",
+]
+for _m in ("workflow/plan.py", "workflow/run.py"):
+    MODULES[_m] = _WF
+    FULL[_m] = [*_WF, *_WF_SLOW]
 # ---- end of mutW's selections ----------------------------------------------------------------
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
