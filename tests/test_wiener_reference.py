@@ -195,3 +195,49 @@ def test_the_filter_whose_reach_is_measured_is_the_filter_applied(prior):
         got = wiener._wiener_transfer(0.01, prior, variance)(k_fft, d2)
         expected = np.conj(k_fft) / (np.abs(k_fft) ** 2 + v + 0.01 * reg)
         assert np.allclose(got, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_white_prior_fit_uses_the_kernels_energy():
+    """White scene of std s0 blurred by k plus noise sigma: var(y) = s0^2 sum(k^2) +
+    sigma^2, so lam = sigma^2 / s0^2 (here sum(k^2) = 0.38, sum(k) = 1)."""
+    rng = np.random.default_rng(7)
+    s0, sigma = 0.1, 0.01
+    kernel = np.array([[0.5, 0.3, 0.2]])  # no spectral zero: the gain floor stays at 1e-6
+    x = 0.5 + s0 * rng.standard_normal((256, 256))
+    y = np.real(np.fft.ifft2(np.fft.fft2(x) * np.fft.fft2(_on_grid(kernel, x.shape))))
+    y += sigma * rng.standard_normal(y.shape)
+    p = dc.plan(y, kernel, method="wiener", noise_sigma=sigma, prior="white")
+    assert float(p.params["lam"][0]) == pytest.approx(sigma**2 / s0**2, rel=0.03)
+
+
+@pytest.mark.parametrize("frame", [(30, 41), (37, 24)])
+def test_taper_pad_reflects_then_fades_to_the_mean_by_a_raised_cosine(frame):
+    """The frame at offset pad + taper, its mirror image for ``pad`` px all round, then a
+    fade to the mean reaching it at the periodic wrap: the fade weight (the padded value's
+    deviation from the mean over the mirror image's) rises from ~0 at the wrap to 1 at
+    the reflection, a raised cosine (w[i] + w[-1 - i] = 1)."""
+    rng = np.random.default_rng(4)
+    y = rng.uniform(0.0, 1.0, frame)
+    pad, taper = 5, 8
+    shape = (frame[0] + 2 * (pad + taper) + 6, frame[1] + 2 * (pad + taper) + 3)  # uneven
+    out = common._taper_pad(y, pad, taper, shape)
+    assert out.shape == shape
+    before = pad + taper
+    mirror = np.pad(y, [(before, n - s - before) for s, n in zip(frame, shape, strict=True)],
+                    mode="symmetric")
+    inner = (slice(taper, before + frame[0] + pad), slice(taper, before + frame[1] + pad))
+    assert np.array_equal(out[inner], mirror[inner])  # the frame and its reflection
+    mean = y.mean()
+    for axis in (0, 1):  # rows of the frame along the columns, and columns along rows
+        line = slice(before, before + frame[1 - axis])
+        o = out[:, line] if axis == 0 else out[line, :].T
+        m = mirror[:, line] if axis == 0 else mirror[line, :].T
+        weight = np.median((o - mean) / (m - mean), axis=1)  # one weight per row
+        assert np.allclose((o - mean), weight[:, None] * (m - mean), atol=1e-12)
+        n = shape[axis]
+        s = frame[axis]
+        for fade in (weight[:taper], weight[before + s + pad :][::-1]):
+            assert np.all(np.diff(fade) > 0) and 0 < fade[0] < 0.05  # ~0 at the wrap
+            assert np.allclose(fade + fade[::-1], 1.0)
+        assert len(weight[before + s + pad :]) == n - before - s - pad
+        assert np.allclose(weight[taper : before + s + pad], 1.0)
