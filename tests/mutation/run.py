@@ -290,6 +290,7 @@ FULL["core/deconvolve/wiener.py"] = _DEC
 MODULES["core/deconvolve/common.py"] = [*_DEC, _TL]
 FULL["core/deconvolve/common.py"] = [*_DEC, _TL]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
+    "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
     "tests/test_issue11_kills.py::test_a_deleted_sidecar_triggers_a_rerun",
     "tests/test_workflow.py::test_symlink_escape_is_refused",
