@@ -23,6 +23,7 @@ def test_a_still_pillbox_is_eq3():
     assert psf.ipsf_radial(1.0, STILL) == pytest.approx(1 / (4 * math.pi), rel=1e-12)
     assert psf.ipsf_radial(2.5, STILL) == 0.0  # outside the 2 px radius
     assert psf.encircled_energy(1.0, STILL) == pytest.approx(0.25, rel=1e-12)  # (1/2)^2
+    assert psf.encircled_energy(1.5, STILL) == pytest.approx(0.5625, rel=1e-12)  # (3/4)^2
     assert psf.encircled_energy(3.0, STILL) == pytest.approx(1.0, rel=1e-12)
 
 

@@ -241,3 +241,34 @@ def test_taper_pad_reflects_then_fades_to_the_mean_by_a_raised_cosine(frame):
             assert np.allclose(fade + fade[::-1], 1.0)
         assert len(weight[before + s + pad :]) == n - before - s - pad
         assert np.allclose(weight[taper : before + s + pad], 1.0)
+
+
+def test_pure_noise_gets_the_largest_natural_prior_lam():
+    """A flat scene: all the gradient energy is the noise's own (4 sigma^2), so the fitted
+    image gradient variance is at its floor, the noise's 4 sigma^2: lam = 1/4."""
+    rng = np.random.default_rng(8)
+    sigma = 0.02
+    y = 0.5 + sigma * rng.standard_normal((128, 128))
+    p = dc.plan(y, np.ones((1, 1)), method="wiener", noise_sigma=sigma)
+    assert float(p.params["lam"][0]) == pytest.approx(0.25, rel=1e-12)
+    p = dc.plan(y, np.ones((1, 1)), method="wiener", noise_sigma=sigma, prior="white")
+    assert float(p.params["lam"][0]) == pytest.approx(1.0, rel=1e-12)  # floor sigma^2
+
+
+def test_channels_run_on_channel_threads_only_inside_the_block():
+    import threading
+
+    def name(_c):
+        return threading.current_thread().name
+
+    caller = threading.current_thread().name
+    assert common.map_channels(name, 3) == [caller] * 3  # serial by default
+    with common.channel_threads(2):
+        names = common.map_channels(name, 3)
+        assert common.map_channels(name, 1) == [caller]  # one channel: no pool
+    assert all(n.startswith("flexdof-channel") for n in names)
+    with common.channel_threads(0):  # at least one thread: serial
+        assert common.map_channels(name, 2) == [caller] * 2
+    assert common.map_channels(lambda c: c * c, 4) == [0, 1, 4, 9]
+    with common.channel_threads(3):
+        assert common.map_channels(lambda c: c * c, 4) == [0, 1, 4, 9]  # in order
