@@ -272,3 +272,16 @@ def test_channels_run_on_channel_threads_only_inside_the_block():
     assert common.map_channels(lambda c: c * c, 4) == [0, 1, 4, 9]
     with common.channel_threads(3):
         assert common.map_channels(lambda c: c * c, 4) == [0, 1, 4, 9]  # in order
+
+
+def test_the_overlap_depth_is_capped_at_the_frames_longer_side():
+    """A 9 px box's natural-prior filter at lam 0.01 reaches ~240 px: on a 40 x 300 frame
+    the plan's depth is that reach (more than the 40 rows, less than the 300 columns), on
+    a 40 x 60 frame it is 60."""
+    kernel = np.full((9, 9), 1 / 81)
+    reach = dc.filter_depth(kernel, wiener._wiener_transfer(0.01, "natural"), limit=600)
+    assert 40 < reach < 300
+    for shape, depth in (((40, 300), reach), ((300, 40), reach), ((40, 60), 60)):
+        y = _scene(shape, seed=5)
+        p = dc.plan(y, kernel, method="wiener", noise_sigma=0.01, regularization=0.01)
+        assert p.depth == depth

@@ -137,8 +137,9 @@ def test_why_a_stack_is_processed_or_not(tmp_path):
     assert need(_record(fingerprint="old"), "fp", out, False, _sha) == "changed"
     assert need(_record(output_sha256=_sha(out)), "fp", out, False, _sha) is None
     assert need(_record(output_sha256=""), "fp", out, False, _sha) is None  # no hash kept
-    changed = _record(output_sha256=hashlib.sha256(b"other").hexdigest())
-    assert need(changed, "fp", out, False, _sha) == "output changed since it was written"
+    for other in ("0" * 64, "f" * 64):  # below and above the real hash
+        changed = _record(output_sha256=other)
+        assert need(changed, "fp", out, False, _sha) == "output changed since it was written"
     bad_input = _record(status="failed", error_kind="input")
     assert need(bad_input, "fp", out, False, _sha) is None  # unchanged bad input: not again
     assert need(bad_input, "fp", out, True, _sha) == "failed"  # retry_failed
