@@ -80,6 +80,7 @@ def test_every_after_an_overrun_starts_at_once_and_drops_the_missed_ticks(clock)
 def test_every_stops_when_told(clock):
     def run_once():
         clock.starts.append(clock.now)
+        assert len(clock.starts) <= 2, "ran on after the stop"
         clock.stopped = len(clock.starts) == 2
         return True
 
