@@ -99,3 +99,13 @@ def test_the_default_polar_rule_resolves_a_gaussian_ipsf_to_round_off():
     sweep = constant_speed(12.5, 1.0, 0.36)
     reference = psf.integrated_psf(lens, 1000.0, sweep, theta_order=24)
     assert np.abs(psf.integrated_psf(lens, 1000.0, sweep) - reference).sum() < 1e-11
+
+
+@pytest.mark.parametrize("model", ["pillbox", "gaussian"])
+def test_on_small_changes_both_methods_compute_the_same_sum(model):
+    """A piece whose blur changes by less than SMALL_CHANGE_PX = the numeric method's
+    0.5 px step is one Gauss-Legendre interval in both methods: the same kernel."""
+    for b0, b1 in ((6.8, 7.25), (19.8, 20.25), (3.0, 2.6)):
+        analytic = psf._analytic_ipsf([(1.0, b0, b1)], 12, model, 1.0)
+        numeric = psf._numeric_ipsf([(1.0, b0, b1)], 12, model, 1.0)
+        assert np.abs(analytic - numeric).max() < 1e-15

@@ -99,9 +99,10 @@ def test_reflect_and_fade_agrees_with_the_mirror_periodic_filter(shape):
     assert np.abs(got - expected).max() < 2e-5  # the filter's tail beyond its reach
 
 
-def test_kernel_samples_add_their_spread_to_the_denominator():
+@pytest.mark.parametrize("transpose", [False, True])
+def test_kernel_samples_add_their_spread_to_the_denominator(transpose):
     y = _scene((40, 36), seed=2)
-    kernel = _one_sided_kernel()
+    kernel = _one_sided_kernel().T if transpose else _one_sided_kernel()  # 7 x 5 or 5 x 7
     samples = np.stack([kernel, kernel[::-1, ::-1], np.roll(kernel, 1, axis=1)])
     mean = samples.mean(axis=0)
     got = dc.wiener(y, mean, noise_sigma=0.01, regularization=0.05, kernel_samples=samples)
@@ -285,3 +286,31 @@ def test_the_overlap_depth_is_capped_at_the_frames_longer_side():
         y = _scene(shape, seed=5)
         p = dc.plan(y, kernel, method="wiener", noise_sigma=0.01, regularization=0.01)
         assert p.depth == depth
+
+
+def test_kernel_samples_of_the_wrong_shape_are_named():
+    with pytest.raises(InputError, match=r"shape \(n, 5, 7\), got \(2, 7, 5\)"):
+        dc.kernel_variance(np.ones((2, 7, 5)), _one_sided_kernel())
+
+
+@pytest.mark.parametrize("corner", [(0, 0), (0, 1), (1, 0), (1, 1)])
+def test_noise_blocks_with_a_clipped_pixel_anywhere_are_left_out(corner):
+    """One clipped pixel in every other 2 x 2 block, at each of the four places: those
+    blocks' Haar details are the clipping, not noise, and must not enter the median."""
+    rng = np.random.default_rng(6)
+    y = rng.normal(0.5, 0.01, (128, 128))
+    y[corner[0] :: 4, corner[1] :: 2] = 1.0  # every other block row, every block in it
+    assert dc.estimate_noise_sigma(y, saturation=1.0) == pytest.approx(0.01, rel=0.15)
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.int32, np.float32])
+def test_integer_and_float32_frames_are_deconvolved_like_float64(dtype):
+    y = np.random.default_rng(9).integers(10, 200, (32, 40))
+    kernel = _one_sided_kernel()
+    expected = dc.wiener(y.astype(np.float64), kernel, noise_sigma=1.0, regularization=0.01)
+    got = dc.wiener(y.astype(dtype), kernel, noise_sigma=1.0, regularization=0.01)
+    assert got.dtype == (np.float32 if dtype == np.float32 else np.float64)
+    assert np.allclose(got, expected, rtol=1e-5, atol=1e-3)
+    for bad in (y > 100, y.astype(np.complex128), y.astype(str)):
+        with pytest.raises(InputError, match="real numeric"):
+            dc.wiener(bad, kernel, noise_sigma=1.0)

@@ -303,3 +303,10 @@ def test_two_inputs_matching_one_stack_or_one_output_are_refused(tmp_path):
     )
     with pytest.raises(InputError, match="would both write"):
         wplan.plan_stacks(load_workflow(path))
+
+
+def test_an_output_directory_that_cannot_be_made_is_an_input_error(tmp_path):
+    root = _tree(tmp_path)
+    (root / "out").write_text("a file where the output folder should be")
+    with pytest.raises(InputError, match="cannot create the output directory"):
+        wrun.run_workflow(load_workflow(_flow(root)))
