@@ -310,3 +310,22 @@ def test_an_output_directory_that_cannot_be_made_is_an_input_error(tmp_path):
     (root / "out").write_text("a file where the output folder should be")
     with pytest.raises(InputError, match="cannot create the output directory"):
         wrun.run_workflow(load_workflow(_flow(root)))
+
+
+def test_a_run_reports_what_it_did_and_how_long_it_took(tmp_path):
+    import time
+
+    root = _tree(tmp_path)
+    workflow = load_workflow(_flow(root))
+    start = time.perf_counter()
+    first = wrun.run_workflow(workflow)
+    elapsed = time.perf_counter() - start
+    assert (first.planned, sorted(first.done), first.skipped, first.failed) == (
+        2, ["stacks/s10", "stacks/s2"], [], [])
+    assert 0.0 < first.seconds <= elapsed
+    second = wrun.run_workflow(workflow)
+    assert (second.done, second.skipped, second.run_id) == (
+        [], ["stacks/s2", "stacks/s10"], first.run_id + 1)
+    plan = []
+    dry = wrun.run_workflow(workflow, dry_run=True, on_plan=lambda todo, n: plan.append(n))
+    assert (dry.run_id, dry.seconds, plan) == (0, 0.0, [2])
