@@ -314,3 +314,35 @@ def test_integer_and_float32_frames_are_deconvolved_like_float64(dtype):
     for bad in (y > 100, y.astype(np.complex128), y.astype(str)):
         with pytest.raises(InputError, match="real numeric"):
             dc.wiener(bad, kernel, noise_sigma=1.0)
+
+
+def test_a_frame_without_a_2x2_block_has_no_noise_estimate():
+    for shape in ((1, 50), (50, 1), (1, 1)):
+        assert dc.estimate_noise_sigma(np.random.default_rng(0).random(shape)) == 0.0
+
+
+def _response(offsets: list[tuple[int, int]]):
+    """A transfer whose impulse response is 1/len at each (row, col) offset, any grid."""
+
+    def transfer(k_fft, d2):
+        n0, n1 = k_fft.shape[0], 2 * (k_fft.shape[1] - 1)
+        h = np.zeros((n0, n1))
+        for dy, dx in offsets:
+            h[dy % n0, dx % n1] += 1.0 / len(offsets)
+        return np.fft.rfft2(h)
+
+    return transfer
+
+
+@pytest.mark.parametrize(
+    ("offsets", "depth"),
+    [
+        ([(0, 0)], 0),
+        ([(0, 0), (3, 1)], 3),  # below-right of the centre
+        ([(0, 0), (-3, 1)], 3),  # above: wraps to the grid's last rows
+        ([(0, 0), (1, -5)], 5),  # left: the last columns
+        ([(-2, -2), (2, 2), (0, 0)], 2),
+    ],
+)
+def test_filter_depth_is_the_chebyshev_radius_of_the_impulse_response(offsets, depth):
+    assert dc.filter_depth(np.ones((3, 3)) / 9, _response(offsets)) == depth

@@ -316,7 +316,11 @@ def test_a_run_reports_what_it_did_and_how_long_it_took(tmp_path):
     import time
 
     root = _tree(tmp_path)
-    workflow = load_workflow(_flow(root))
+    workflow = load_workflow(_flow(root, extra='name = "a/b/{stack}.tif"\n'))  # nested
+    seen = []
+    wrun.run_workflow(workflow, dry_run=True, on_plan=lambda todo, n: seen.append(
+        (sorted(why for _, why in todo), n)))
+    assert seen == [(["new", "new"], 0)]
     start = time.perf_counter()
     first = wrun.run_workflow(workflow)
     elapsed = time.perf_counter() - start
@@ -329,3 +333,5 @@ def test_a_run_reports_what_it_did_and_how_long_it_took(tmp_path):
     plan = []
     dry = wrun.run_workflow(workflow, dry_run=True, on_plan=lambda todo, n: plan.append(n))
     assert (dry.run_id, dry.seconds, plan) == (0, 0.0, [2])
+    assert sorted(p.name for p in (root / "out" / "a" / "b").iterdir()) == [
+        "s10.tif", "s10.tif.json", "s2.tif", "s2.tif.json"]
