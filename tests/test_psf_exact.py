@@ -109,3 +109,34 @@ def test_on_small_changes_both_methods_compute_the_same_sum(model):
         analytic = psf._analytic_ipsf([(1.0, b0, b1)], 12, model, 1.0)
         numeric = psf._numeric_ipsf([(1.0, b0, b1)], 12, model, 1.0)
         assert np.abs(analytic - numeric).max() < 1e-15
+
+
+def test_sub_pixel_and_in_focus_pauses():
+    # b = 0.5 px: (rho / 0.25)^2 of the energy within rho < 0.25
+    assert psf.encircled_energy(0.1, [(1.0, 0.5, 0.5)]) == pytest.approx(0.16, rel=1e-12)
+    # b = 0 (in focus): a point, all its energy within any radius
+    assert psf.encircled_energy(0.01, [(1.0, 0.0, 0.0)]) == 1.0
+
+
+@pytest.mark.parametrize("model", ["pillbox", "gaussian"])
+def test_a_truncated_kernel_keeps_its_outer_ring(model):
+    """size=7 for a blur of 46-53 px: the kernel is flat out to its edge, which both
+    methods must integrate alike (the analytic one mirrors an octant out to the edge)."""
+    lens = Lens(12.5, 1.4, 4.65, 1024, 768)
+    profile = Profile([0.0, 0.1], [12.5, 12.55])
+    analytic = psf.integrated_psf(lens, 450.0, profile, model=model, size=7)
+    numeric = psf.integrated_psf(lens, 450.0, profile, model=model, size=7, method="numeric")
+    assert analytic[0, 3] > analytic[3, 3] * 0.5  # the ring holds real energy
+    assert np.abs(analytic - numeric).sum() < 1e-3
+
+
+@pytest.mark.parametrize("model", ["pillbox", "gaussian"])
+def test_numeric_sub_intervals_are_the_step_wide(model):
+    """A 2 px blur change with 0.5 px steps is four sub-intervals: the same kernel as the
+    piece cut into its four 0.5 px quarters (three sub-intervals differ by 3e-6-7e-4)."""
+    whole = psf._numeric_ipsf([(1.0, 0.2, 2.2)], 6, model, 1.0, step_px=0.5)
+    quarters = [(0.25, 0.2 + 0.5 * i, 0.7 + 0.5 * i) for i in range(4)]
+    cut = psf._numeric_ipsf(quarters, 6, model, 1.0, step_px=0.5)
+    assert np.abs(whole - cut).max() < 1e-12  # round-off of the nodes' positions
+    three = psf._numeric_ipsf([(1.0, 0.2, 2.2)], 6, model, 1.0, step_px=2 / 3)
+    assert np.abs(whole - three).sum() > 1e-6

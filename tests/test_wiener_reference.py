@@ -346,3 +346,23 @@ def _response(offsets: list[tuple[int, int]]):
 )
 def test_filter_depth_is_the_chebyshev_radius_of_the_impulse_response(offsets, depth):
     assert dc.filter_depth(np.ones((3, 3)) / 9, _response(offsets)) == depth
+
+
+def test_the_noise_gain_grid_holds_a_tall_kernel():
+    tall = np.ones((301, 1)) / 301
+    gain = wiener.white_noise_gain(tall, 1e-2)
+    assert gain == pytest.approx(_gain_by_parseval(tall, 1e-2, "natural", (2048, 256)), rel=0.05)
+    assert wiener.white_noise_gain(tall.T, 1e-2) == pytest.approx(gain, rel=1e-12)
+    assert 1e-3 < wiener.lam_for_noise_gain(tall, 2.0) < 1e-2  # gain 1.92 at 1e-2
+
+
+def test_gradient_energy_of_ramps_and_of_a_single_row():
+    """mean |grad y|^2 with forward differences: a ramp a j + b i gives a^2 + b^2; a single
+    row has only the horizontal one and is taken as isotropic: 2 a^2."""
+    i, j = np.mgrid[0:6, 0:9].astype(float)
+    valid = np.ones((6, 9), dtype=bool)
+    assert common._gradient_energy_2d(0.3 * j + 0.2 * i, valid) == pytest.approx(0.13)
+    row = 0.3 * np.arange(9.0)[None, :]
+    assert common._gradient_energy_2d(row, valid[:1]) == pytest.approx(2 * 0.09)
+    assert common._gradient_energy_2d(row.T, valid[:1].T) == pytest.approx(2 * 0.09)
+    assert common._gradient_energy_2d(np.ones((1, 1)), valid[:1, :1]) == 0.0

@@ -326,7 +326,7 @@ def test_a_run_reports_what_it_did_and_how_long_it_took(tmp_path):
     elapsed = time.perf_counter() - start
     assert (first.planned, sorted(first.done), first.skipped, first.failed) == (
         2, ["stacks/s10", "stacks/s2"], [], [])
-    assert 0.0 < first.seconds <= elapsed
+    assert elapsed - 0.05 <= first.seconds <= elapsed
     second = wrun.run_workflow(workflow)
     assert (second.done, second.skipped, second.run_id) == (
         [], ["stacks/s2", "stacks/s10"], first.run_id + 1)
