@@ -140,3 +140,15 @@ def test_numeric_sub_intervals_are_the_step_wide(model):
     assert np.abs(whole - cut).max() < 1e-12  # round-off of the nodes' positions
     three = psf._numeric_ipsf([(1.0, 0.2, 2.2)], 6, model, 1.0, step_px=2 / 3)
     assert np.abs(whole - three).sum() > 1e-6
+
+
+def test_rasters_of_a_zero_blur_are_unit_deltas():
+    for raster in (psf.raster_pillbox(0.0, 3), psf.raster_gaussian(0.0, 3),
+                   psf.raster_lens_psf("gaussian", 1e-13, 2, g=0.5)):
+        expected = np.zeros(raster.shape)
+        expected[raster.shape[0] // 2, raster.shape[1] // 2] = 1.0
+        assert np.array_equal(raster, expected)
+    # half the time in focus, half at a 4 px blur: half the energy on the centre pixel
+    kernel = psf._analytic_ipsf([(0.5, 0.0, 0.0), (0.5, 4.0, 4.0)], 3, "pillbox", 1.0)
+    assert kernel.sum() == pytest.approx(1.0, rel=1e-12)
+    assert kernel[3, 3] == pytest.approx(0.5 + 0.5 * psf.raster_pillbox(4.0, 3)[3, 3])
