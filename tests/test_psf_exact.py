@@ -31,6 +31,8 @@ def test_a_still_gaussian_is_eq4_with_its_g():
     # g = 0.5: c = 2 px, density 2/(4 pi) exp(-2/4) at r = 1
     value = psf.ipsf_radial(1.0, STILL, model="gaussian", gaussian_g=0.5)
     assert value == pytest.approx(math.exp(-0.5) / (2 * math.pi), rel=1e-12)
+    value = psf.ipsf_radial(1.5, STILL, model="gaussian", gaussian_g=0.5)
+    assert value == pytest.approx(math.exp(-1.125) / (2 * math.pi), rel=1e-12)
     energy = psf.encircled_energy(1.0, STILL, model="gaussian", gaussian_g=0.5)
     assert energy == pytest.approx(1 - math.exp(-0.5), rel=1e-12)
 

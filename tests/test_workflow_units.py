@@ -335,3 +335,20 @@ def test_a_run_reports_what_it_did_and_how_long_it_took(tmp_path):
     assert (dry.run_id, dry.seconds, plan) == (0, 0.0, [2])
     assert sorted(p.name for p in (root / "out" / "a" / "b").iterdir()) == [
         "s10.tif", "s10.tif.json", "s2.tif", "s2.tif.json"]
+
+
+def test_file_groups_sort_by_folder_then_name(tmp_path):
+    """Groups from two folders: folder a's groups y, z come before folder b's group a."""
+    for folder, group in (("b", "a"), ("a", "z"), ("a", "y")):
+        (tmp_path / "shots" / folder).mkdir(parents=True, exist_ok=True)
+        for i in range(2):
+            (tmp_path / "shots" / folder / f"{group}_{i}.png").write_bytes(b"")
+    path = tmp_path / "flow.toml"
+    path.write_text(
+        '[[inputs]]\nfiles = "shots/*/*.png"\ngroup_by = "^(?P<stack>[a-z])_"\n'
+        '[output]\ndirectory = "out"\nname = "{parent}-{stack}.tif"\n'
+    )
+    planned = wplan.plan_stacks(load_workflow(path))
+    assert [(s.id, s.output.name) for s in planned] == [
+        ("shots/a#y", "a-y.tif"), ("shots/a#z", "a-z.tif"), ("shots/b#a", "b-a.tif")]
+    assert [Path(p).name for p in planned[1].paths] == ["z_0.png", "z_1.png"]
