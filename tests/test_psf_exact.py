@@ -154,3 +154,14 @@ def test_rasters_of_a_zero_blur_are_unit_deltas():
     kernel = psf._analytic_ipsf([(0.5, 0.0, 0.0), (0.5, 4.0, 4.0)], 3, "pillbox", 1.0)
     assert kernel.sum() == pytest.approx(1.0, rel=1e-12)
     assert kernel[3, 3] == pytest.approx(0.5 + 0.5 * psf.raster_pillbox(4.0, 3)[3, 3])
+
+
+def test_through_focus_and_sub_pixel_pieces_near_the_centre():
+    # a piece from b = 0 to 2 px: E(rho) = (1/2) int_0^2 min(1, 4 rho^2 / b^2) db
+    # = 2 rho - rho^2 for rho < 1; the density at r < 1: (1/2)(4/pi)(1/(2r) - 1/2)
+    through = [(1.0, 0.0, 2.0)]
+    assert psf.encircled_energy(0.25, through) == pytest.approx(0.4375, rel=1e-12)
+    assert psf.ipsf_radial(0.25, through) == pytest.approx(3 / math.pi, rel=1e-12)
+    # a pause at b = 1 px: 4/pi inside r < 1/2, nothing outside
+    assert psf.ipsf_radial(0.25, [(1.0, 1.0, 1.0)]) == pytest.approx(4 / math.pi, rel=1e-12)
+    assert psf.ipsf_radial(0.6, [(1.0, 1.0, 1.0)]) == 0.0

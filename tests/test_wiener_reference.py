@@ -366,3 +366,27 @@ def test_gradient_energy_of_ramps_and_of_a_single_row():
     assert common._gradient_energy_2d(row, valid[:1]) == pytest.approx(2 * 0.09)
     assert common._gradient_energy_2d(row.T, valid[:1].T) == pytest.approx(2 * 0.09)
     assert common._gradient_energy_2d(np.ones((1, 1)), valid[:1, :1]) == 0.0
+
+
+def test_natural_prior_fit_on_a_clean_scene_is_the_documented_relation():
+    """No noise in the image, sigma given: mean|grad y|^2 (numpy's forward differences)
+    = s2 sum(k^2) + 4 sigma^2 gives s2, and lam = sigma^2 / s2 exactly."""
+    i, j = np.mgrid[0:64, 0:80].astype(float)
+    y = 0.5 + 0.2 * np.sin(0.37 * j + 0.11 * i) * np.cos(0.23 * i)
+    g = float(np.mean(np.diff(y, axis=0) ** 2) + np.mean(np.diff(y, axis=1) ** 2))
+    kernel = np.array([[0.5, 0.3, 0.2]])  # sum k^2 = 0.38
+    sigma = float(np.sqrt(g / 12.0))  # 4 sigma^2 = g / 3
+    p = dc.plan(y, kernel, method="wiener", noise_sigma=sigma)
+    s2 = (g - 4 * sigma**2) / 0.38
+    assert float(p.params["lam"][0]) == pytest.approx(sigma**2 / s2, rel=1e-9)
+
+
+def test_image_and_censored_mask_shapes_are_checked():
+    one = dc.wiener(np.full((1, 1), 0.5), np.ones((1, 1)), noise_sigma=0.0)
+    assert one.shape == (1, 1) and one[0, 0] == pytest.approx(0.5)
+    for bad in (np.zeros((0, 5)), np.zeros(5), np.zeros((2, 2, 2, 2))):
+        with pytest.raises(InputError, match="non-empty"):
+            dc.wiener(bad, np.ones((1, 1)), noise_sigma=0.0)
+    with pytest.raises(InputError, match=r"censored must have shape \(30, 41\), got \(30, 40\)"):
+        dc.deconvolve(np.zeros((30, 41)), np.ones((1, 1)), censored=np.zeros((30, 40), bool),
+                      noise_sigma=0.0)

@@ -352,3 +352,40 @@ def test_file_groups_sort_by_folder_then_name(tmp_path):
     assert [(s.id, s.output.name) for s in planned] == [
         ("shots/a#y", "a-y.tif"), ("shots/a#z", "a-z.tif"), ("shots/b#a", "b-a.tif")]
     assert [Path(p).name for p in planned[1].paths] == ["z_0.png", "z_1.png"]
+
+
+def test_empty_inputs_are_named_by_their_number_and_reported_when_allowed(tmp_path):
+    root = _tree(tmp_path)
+    path = root / "flow.toml"
+    path.write_text(
+        '[[inputs]]\ndirectories = "stacks/*"\n[[inputs]]\ndirectories = "drop/*"\n'
+        '[[inputs]]\nfiles = "later/*.png"\n[output]\ndirectory = "out"\n'
+    )
+    with pytest.raises(wplan.NoInputsYet, match=r"\[\[inputs\]\] #2: directories"):
+        wplan.plan_stacks(load_workflow(path))
+    reported = []
+    stacks = wplan.plan_stacks(load_workflow(path), empty_ok=True, on_empty=reported.append)
+    assert len(stacks) == 2 and len(reported) == 2
+    assert "#2: directories = 'drop/*'" in reported[0] and "#3: files" in reported[1]
+    assert len(wplan.plan_stacks(load_workflow(path), empty_ok=True)) == 2  # no callback
+
+
+def test_fingerprint_follows_a_lens_profile_outside_the_stack(tmp_path):
+    root = _tree(tmp_path)
+    lens = root / "stacks" / "lens.toml"
+    lens.write_text(
+        'name = "test lens"\nfocal_length_mm = 12.5\nf_number = 1.4\n'
+        "[sensor]\npixel_pitch_um = 4.65\nwidth_px = 32\nheight_px = 24\n"
+    )
+    folder = root / "stacks" / "s2"
+    frames = sorted(folder.glob("*.png"))
+    (folder / "stack.toml").write_text(
+        'lens = "../lens.toml"\nkind = "focal-stack"\n' + "".join(
+            f'[[frames]]\nfile = "{f.name}"\nimage_distance_mm = {12.6 + 0.05 * n}\n'
+            for n, f in enumerate(frames))
+    )
+    stack = wplan.plan_stacks(load_workflow(_flow(root)))[0]
+    assert stack.id == "stacks/s2" and stack.options.lens is None
+    before = wplan.fingerprint(stack, _sha)
+    lens.write_text(lens.read_text().replace("f_number = 1.4", "f_number = 2.0"))
+    assert wplan.fingerprint(stack, _sha) != before
