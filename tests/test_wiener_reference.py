@@ -421,3 +421,10 @@ def test_per_channel_regularization_applies_to_its_own_channel():
         alone = dc.wiener(y[..., c], kernel, noise_sigma=0.01, regularization=lam)
         # one reach for all channels (the smallest lam's): equal to the filter's tail
         assert np.abs(got[..., c] - alone).max() < 2e-5
+
+
+def test_kernels_need_odd_sides_both_ways():
+    for shape in ((3, 4), (4, 3), (2, 2)):
+        with pytest.raises(InputError, match="odd sides"):
+            dc.check_kernel(np.ones(shape) / np.prod(shape))
+    assert dc.check_kernel(np.ones((3, 5)) / 15).shape == (3, 5)
