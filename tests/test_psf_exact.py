@@ -88,6 +88,14 @@ def test_a_blur_change_of_1e_12_px_is_a_pause(model):
         )
 
 
+def test_kernel_sizes_hold_the_disk_or_four_sigma():
+    # pillbox: radius b/2 plus the pixel it touches; Gaussian: radius 2 g b (4 sigma)
+    assert psf.kernel_size(10.0) == 13  # 2 ceil(5 + 0.5) + 1
+    assert psf.kernel_size(10.0, model="gaussian") == 43  # 2 ceil(20 + 0.5) + 1
+    assert psf.kernel_size(10.0, model="gaussian", gaussian_g=0.5) == 23
+    assert psf.kernel_size(0.0, model="gaussian") == 3
+
+
 def test_kernel_size_refuses_negative_and_non_finite_blurs():
     for bad in (-0.5, -1e-9, float("nan"), float("inf")):
         with pytest.raises(InputError, match="max_blur_px"):

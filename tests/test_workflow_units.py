@@ -389,3 +389,30 @@ def test_fingerprint_follows_a_lens_profile_outside_the_stack(tmp_path):
     before = wplan.fingerprint(stack, _sha)
     lens.write_text(lens.read_text().replace("f_number = 1.4", "f_number = 2.0"))
     assert wplan.fingerprint(stack, _sha) != before
+
+
+def test_groups_sort_by_their_name_not_their_files_and_any_regex_groups(tmp_path):
+    """The regex takes the stack from the end of the name: group a's files (2_a, 4_a)
+    sort after group b's (1_b, 3_b), but group a comes first. A regex may begin with
+    any letter (only the word "directory" means the folder)."""
+    folder = tmp_path / "shots"
+    folder.mkdir()
+    for name in ("1_b.png", "2_a.png", "3_b.png", "4_a.png", "stray.png"):
+        (folder / name).write_bytes(b"")
+    path = tmp_path / "flow.toml"
+    text = ('[[inputs]]\nfiles = "shots/[0-9]*.png"\ngroup_by = "z?_(?P<stack>[a-z])[.]png$"\n'
+            '[output]\ndirectory = "out"\n')
+    path.write_text(text)
+    planned = wplan.plan_stacks(load_workflow(path))
+    assert [(s.id, [Path(p).name for p in s.paths]) for s in planned] == [
+        ("shots#a", ["2_a.png", "4_a.png"]), ("shots#b", ["1_b.png", "3_b.png"])]
+    path.write_text(text.replace("[0-9]*.png", "*.png"))
+    with pytest.raises(InputError, match="stray.png does not match group_by"):
+        wplan.plan_stacks(load_workflow(path))
+
+
+def test_outputs_below_a_glob_part_followed_by_fixed_parts(tmp_path):
+    inputs = tmp_path / "in"
+    out = (inputs / "out").resolve()
+    assert wplan._excluded_outputs(str(inputs / "*" / "frames"), out) == out
+    assert wplan._excluded_outputs(str(inputs / "*" / "frames" / "*.png"), out) == out
