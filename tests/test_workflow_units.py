@@ -407,7 +407,7 @@ def test_groups_sort_by_their_name_not_their_files_and_any_regex_groups(tmp_path
     assert [(s.id, [Path(p).name for p in s.paths]) for s in planned] == [
         ("shots#a", ["2_a.png", "4_a.png"]), ("shots#b", ["1_b.png", "3_b.png"])]
     path.write_text(text.replace("[0-9]*.png", "*.png"))
-    with pytest.raises(InputError, match="stray.png does not match group_by"):
+    with pytest.raises(InputError, match=r"stray\.png does not match group_by"):
         wplan.plan_stacks(load_workflow(path))
 
 
