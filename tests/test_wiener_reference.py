@@ -366,6 +366,14 @@ def test_gradient_energy_of_ramps_and_of_a_single_row():
     assert common._gradient_energy_2d(row, valid[:1]) == pytest.approx(2 * 0.09)
     assert common._gradient_energy_2d(row.T, valid[:1].T) == pytest.approx(2 * 0.09)
     assert common._gradient_energy_2d(np.ones((1, 1)), valid[:1, :1]) == 0.0
+    # a clipped spike: every difference touching it is left out, the ramp's stay
+    spiked = 0.3 * j + 0.2 * i
+    spiked[3, 4] = 9.0
+    masked = valid.copy()
+    masked[3, 4] = False
+    assert common._gradient_energy_2d(spiked, masked) == pytest.approx(0.13)
+    masked[0, :] = False  # and a clipped first row
+    assert common._gradient_energy_2d(spiked, masked) == pytest.approx(0.13)
 
 
 def test_natural_prior_fit_on_a_clean_scene_is_the_documented_relation():
