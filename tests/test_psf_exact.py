@@ -10,6 +10,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import integrate
 
 from pipeline.core import psf
 from pipeline.core.lens import Lens
@@ -173,3 +174,31 @@ def test_through_focus_and_sub_pixel_pieces_near_the_centre():
     # a pause at b = 1 px: 4/pi inside r < 1/2, nothing outside
     assert psf.ipsf_radial(0.25, [(1.0, 1.0, 1.0)]) == pytest.approx(4 / math.pi, rel=1e-12)
     assert psf.ipsf_radial(0.6, [(1.0, 1.0, 1.0)]) == 0.0
+
+
+@pytest.mark.parametrize("model", ["pillbox", "gaussian"])
+def test_a_piece_not_through_focus_is_the_mean_of_its_lens_psfs(model):
+    """A piece from b = 2 to 6 px (no zero blur), g = 0.5: the IPSF and its encircled
+    energy are the averages over b of Eq. 3 / Eq. 4 and of their energies (quadrature)."""
+    g = 0.5
+
+    def density(b, r):
+        if model == "pillbox":
+            return 4 / (math.pi * b**2) if 2 * r < b else 0.0
+        c = g * b
+        return 2 / (math.pi * c**2) * math.exp(-2 * r**2 / c**2)
+
+    def energy(b, rho):
+        if model == "pillbox":
+            return min(1.0, 4 * rho**2 / b**2)
+        return 1 - math.exp(-2 * rho**2 / (g * b) ** 2)
+
+    piece = [(0.3, 2.0, 6.0)]
+    for r in (0.5, 1.5, 2.5):
+        kink = [2 * r] if 2 < 2 * r < 6 else None
+        expected = integrate.quad(density, 2.0, 6.0, args=(r,), points=kink)[0] / 4
+        got = psf.ipsf_radial(r, piece, model=model, gaussian_g=g)
+        assert got == pytest.approx(expected, rel=1e-9)
+        expected = integrate.quad(energy, 2.0, 6.0, args=(r,), points=kink)[0] / 4
+        got = psf.encircled_energy(r, piece, model=model, gaussian_g=g)
+        assert got == pytest.approx(expected, rel=1e-9)
