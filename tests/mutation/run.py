@@ -461,36 +461,44 @@ def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = Fa
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
     alive = []
     found = survivors(session, timeouts)
-    for m in found:
-        with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
-            work = Path(tmp)
-            scratch_copy(work)
-            source = (work / m["module_path"]).read_bytes()
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}  # no stale .pyc between mutants
+    with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
+        work = Path(tmp)
+        scratch_copy(work)  # once: each mutant is applied to it and undone after
+        for m in found:
+            target = work / m["module_path"]
+            source = target.read_bytes()
             applied = subprocess.run(["cosmic-ray", "apply", m["module_path"],
                                       m["operator_name"], str(m["occurrence"])], cwd=work,
                                      capture_output=True, check=False)
-            unchanged = (work / m["module_path"]).read_bytes() == source
-            if applied.returncode != 0 or unchanged:  # the code changed since the session
-                # (cosmic-ray apply exits 0 without changing anything when the occurrence is gone)
-                print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
-                continue
+            unchanged = target.read_bytes() == source
             try:
-                proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
-                                      check=False, timeout=10 * TIMEOUT)
-                code = proc.returncode
-            except subprocess.TimeoutExpired:
-                code = "timeout"
-        line = m["start_pos"][0]
-        src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
-        # 1: a test failed, 2: collection failed (the mutant breaks an import);
-        # 3-5 are pytest's own errors (a bad node id): never a kill
-        verdict = {0: "SURVIVED", 1: "KILLED", 2: "KILLED", "timeout": "TIMEOUT"}.get(code,
-                                                                                   "ERROR")
-        print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
-              flush=True)
-        if verdict in ("SURVIVED", "ERROR"):  # a hang at 10x the timeout counts as a kill
-            alive.append(m)
+                if applied.returncode != 0 or unchanged:  # the code changed since the session
+                    # (cosmic-ray apply exits 0 without changing anything when it is gone)
+                    print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
+                    continue
+                try:
+                    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
+                                          check=False, timeout=10 * TIMEOUT, env=env)
+                    code = proc.returncode
+                except subprocess.TimeoutExpired:
+                    code = "timeout"
+            finally:
+                target.write_bytes(source)
+            _report(m, code, alive)
     print(f"{module}: {len(found) - len(alive)} of {len(found)} survivors now killed")
+
+
+def _report(m: dict, code, alive: list) -> None:
+    line = m["start_pos"][0]
+    src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
+    # 1: a test failed, 2: collection failed (the mutant breaks an import);
+    # 3-5 are pytest's own errors (a bad node id): never a kill
+    verdict = {0: "SURVIVED", 1: "KILLED", 2: "KILLED", "timeout": "TIMEOUT"}.get(code, "ERROR")
+    print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
+          flush=True)
+    if verdict in ("SURVIVED", "ERROR"):  # a hang at 10x the timeout counts as a kill
+        alive.append(m)
 
 
 def main(argv=None) -> int:
