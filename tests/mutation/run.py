@@ -17,6 +17,7 @@ survived, score; the sessions (``SCRATCH/<module>.sqlite``) stay for
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import shutil
@@ -215,6 +216,122 @@ MODULES["parallel/tiling.py"] = [
     f"{_TL}::test_tiled_equals_untiled_on_uneven_chunks",
 ]
 FULL["parallel/tiling.py"] = [_TL, _AS, "tests/test_tiling_geometry.py"]
+# ---- fast selections (helper mutX): psf, wiener/common, workflow run/plan ---------------------
+_PS = "tests/test_psf.py"
+MODULES["core/psf.py"] = [  # the psf tests of both files, cheapest first (1434 mutants)
+    "tests/test_psf_exact.py",
+    *(f"{_PS}::{t}" for t in (
+        "test_radial_eq6_eq7_match_quadrature_of_eq5",
+        "test_encircled_energy_is_integral_of_radial_profile",
+        "test_pillbox_raster_is_disk_area[0.3]", "test_pillbox_raster_is_disk_area[1.0]",
+        "test_pillbox_raster_is_disk_area[2.5]", "test_gaussian_raster_matches_supersampling",
+        "test_lens_psf_in_focus_is_a_delta", "test_sub_pixel_blur_stays_exact",
+        "test_printed_eq6_misses_a_factor_two",
+        "test_dissimilarity_is_symmetric_and_zero_on_itself",
+        "test_zero_blur_kernel_is_delta", "test_zero_speed_reduces_to_lens_psf",
+        "test_depth_at_infinity_and_just_beyond_f", "test_kernel_too_large_is_a_clear_error",
+        "test_non_positive_lens_parameters_are_named", "test_non_positive_exposure_is_named",
+        "test_nan_inputs_are_errors", "test_depth_outside_swept_range",
+        "test_mtf_of_delta_is_flat_and_blur_lowers_it",
+        "test_three_segment_motion_with_pause_and_reversal", "test_blur_larger_than_500_px",
+        "test_depth_invariance_fig5", "test_sweep_starting_or_ending_in_focus",
+        "test_analytic_kernel_matches_numeric_eq5")),
+    f"{_K}::test_tiny_blur_change_matches_quadrature_and_still_kernel",
+    *(f"{_PS}::{t}" for t in (
+        "test_kernels_are_valid_and_analytic_equals_numeric",
+        "test_pillbox_raster_is_disk_area[7.3]", "test_pillbox_raster_is_disk_area[20.0]",
+        "test_analytic_kernel_matches_supersampled_radial_profile")),
+]
+FULL["core/psf.py"] = [_PS, _K, "tests/test_psf_exact.py"]
+_DEC = [  # every test of the Wiener path, cheapest first (measured, 2026-11-26)
+    "tests/test_wiener_reference.py",
+    "tests/test_deconvolve.py::test_non_finite_image_rejected",
+    "tests/test_deconvolve.py::test_bad_kernel_rejected",
+    "tests/test_deconvolve.py::test_bad_method_and_options_rejected",
+    "tests/test_deconvolve.py::test_noise_sigma_ignores_saturated_blocks",
+    "tests/test_deconvolve.py::test_kernel_variance_equals_direct_spectral_variance",
+    "tests/test_deconvolve.py::test_kernel_samples_shape_is_checked",
+    "tests/test_deconvolve.py::test_rl_transfer_is_the_iterated_landweber_step",
+    "tests/test_deconvolve_asymmetric.py::test_eq8_weights_fall_as_one_over_frequency_squared",
+    "tests/test_deconvolve_asymmetric.py::test_eq8_dissimilarity_sees_a_flip_of_a_one_sided_kernel",
+    "tests/test_wiener_lens_psf.py::test_a_delta_kernel_leaves_a_checkerboard_alone",
+    "tests/test_deconvolve_dispatch.py::test_plan_estimates_the_noise_level_when_it_is_not_given",
+    "tests/test_deconvolve.py::test_rl_negative_pixels_keep_nonnegative_output",
+    "tests/test_deconvolve.py::test_wiener_is_exact_inverse_without_noise",
+    "tests/test_deconvolve_asymmetric.py::test_wiener_prior_fit_subtracts_the_whole_noise_term",
+    "tests/test_deconvolve_dispatch.py::test_wiener_spectra_are_computed_once_per_grid_and_dtype",
+    "tests/test_deconvolve.py::test_damped_rl_limits_are_plain_rl_and_no_update",
+    "tests/test_references.py::test_sec41_ipsf_matches_its_reference",
+    "tests/test_wiener_lens_psf.py::test_noise_under_a_pixel_scale_texture_is_measured_not_the_texture",
+    "tests/test_deconvolve.py::test_noise_sigma_estimate",
+    "tests/test_deconvolve.py::test_zero_image_and_zero_pixels",
+    "tests/test_deconvolve.py::test_natural_prior_beats_white_prior",
+    "tests/test_deconvolve.py::test_constant_image_stays_constant",
+    "tests/test_deconvolve_dispatch.py::test_restore_runs_each_channel_with_its_own_noise_level",
+    "tests/test_deconvolve.py::test_delta_kernel_returns_input",
+    "tests/test_deconvolve_asymmetric.py::test_tiles_with_a_one_sided_kernel_equal_the_whole_frame",
+    "tests/test_references.py::test_deconvolution_does_not_regress_against_its_reference",
+    "tests/test_deconvolve.py::test_hyper_laplacian_prox_is_the_minimiser",
+    "tests/test_deconvolve_dispatch.py::test_named_wrappers_forward_their_options",
+    "tests/test_deconvolve_dispatch.py::test_named_wrappers_use_the_methods_own_defaults",
+    "tests/test_deconvolve.py::test_channels_are_independent",
+    "tests/test_deconvolve_asymmetric.py::test_methods_undo_a_one_sided_blur_and_the_flip_does_not",
+    "tests/test_deconvolve.py::test_saturated_pixels_excluded",
+    "tests/test_deconvolve.py::test_no_ringing_from_frame_edges",
+    "tests/test_deconvolve.py::test_quality_against_ground_truth",
+    "tests/test_deconvolve_asymmetric.py::test_huge_kernel_restoration_is_no_worse_than_its_input",
+    "tests/test_deconvolve.py::test_huge_kernel",
+    "tests/test_deconvolve.py::test_zero_noise_and_spectral_zeros_improve",
+    "tests/test_deconvolve_asymmetric.py::test_tiles_honour_the_censored_mask",
+    "tests/test_wiener_lens_psf.py::test_pillbox_restoration_is_never_worse_than_its_input",
+]
+MODULES["core/deconvolve/wiener.py"] = _DEC
+FULL["core/deconvolve/wiener.py"] = _DEC
+MODULES["core/deconvolve/common.py"] = [*_DEC, _TL]
+FULL["core/deconvolve/common.py"] = [*_DEC, _TL]
+_WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
+    "tests/test_workflow_units.py",
+    "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
+    "tests/test_issue11_kills.py::test_a_deleted_sidecar_triggers_a_rerun",
+    "tests/test_workflow.py::test_symlink_escape_is_refused",
+    "tests/test_workflow.py::test_parse_interval",
+    "tests/test_workflow.py::test_shipped_examples_validate",
+    "tests/test_workflow.py::test_run_lock_file_names_the_holder_and_is_emptied_on_release",
+    "tests/test_workflow_reliability.py::test_a_valueerror_from_numpy_is_not_a_permanent_input_error",
+    "tests/test_workflow.py::test_files_grouped_into_stacks_by_regex",
+    "tests/test_workflow.py::test_name_collision_is_refused",
+    "tests/test_workflow.py::test_hash_cache_answers_while_size_mtime_and_inode_match",
+    "tests/test_workflow.py::test_a_transaction_that_raises_is_rolled_back",
+    "tests/test_issue11_kills.py::test_hash_cache_sees_a_same_size_edit",
+    "tests/test_issue11_kills.py::test_a_run_with_failures_is_recorded_failed",
+    "tests/test_workflow_reliability.py::test_an_empty_drop_folder_is_nothing_to_do_yet_for_a_scheduled_workflow",
+    "tests/test_workflow_reliability.py::test_every_with_an_empty_drop_folder_is_nothing_to_do_yet",
+    "tests/test_workflow_reliability.py::test_a_closed_port_fails_at_once_and_the_ledger_is_not_left_running",
+    "tests/test_workflow.py::test_lock_is_released_by_a_dead_holder",
+    "tests/test_workflow.py::test_ledger_round_trips_runs_stacks_and_attempts",
+    "tests/test_workflow_reliability.py::test_dry_run_prints_its_plan_to_stdout_even_when_quiet",
+    "tests/test_workflow_reliability.py::test_file_groups_never_take_the_workflows_own_outputs",
+    "tests/test_workflow.py::test_ledger_opens_schema_1_files_and_refuses_other_schemas_and_non_sqlite",
+    "tests/test_workflow_reliability.py::test_an_output_folder_inside_the_input_glob_is_not_a_stack",
+    "tests/test_workflow_reliability.py::test_an_output_corrupted_in_place_is_processed_again",
+    "tests/test_workflow_reliability.py::test_a_banner_from_another_service_is_named",
+    "tests/test_workflow_reliability.py::test_an_output_folder_above_the_inputs_excludes_nothing",
+    "tests/test_workflow.py::test_output_names_from_inputs_never_escape",
+    "tests/test_workflow_reliability.py::test_an_interrupted_run_does_not_leave_the_ledger_running",
+    "tests/test_workflow_reliability.py::test_disk_full_failures_are_retried_on_the_next_run",
+    "tests/test_workflow.py::test_invalid_workflows_are_refused_before_any_work",
+    "tests/test_workflow.py::test_every_loops_with_the_same_guarantees",
+    "tests/test_workflow.py::test_changes_reprocess_affected_stacks_only",
+    "tests/test_workflow.py::test_bad_stacks_fail_alone_with_clear_errors",
+]
+_WF_SLOW = [  # 5-13 s each (a killed scheduler, a dashboard port, a killed run): FULL only
+    "tests/test_workflow_reliability.py::test_a_dashboard_port_is_reported_as_not_a_scheduler_in_seconds",
+    "tests/test_workflow_reliability.py::test_a_scheduler_killed_mid_run_is_one_error_and_the_stacks_are_redone",
+    "tests/test_workflow.py::test_killed_run_resumes_without_recomputing",
+]
+for _m in ("workflow/plan.py", "workflow/run.py"):
+    MODULES[_m] = _WF
+    FULL[_m] = [*_WF, *_WF_SLOW]
 # ---- end of mutW's selections ----------------------------------------------------------------
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
@@ -241,6 +358,7 @@ exclude-operators = [
 ]
 """
 TIMEOUT = 60.0
+SAMPLE = 1.0
 
 
 def scratch_copy(dest: Path) -> None:
@@ -275,6 +393,8 @@ def score(module: str, work: Path, sessions: Path) -> dict:
     run = dict(cwd=work, check=True, capture_output=True, text=True)
     subprocess.run(["cosmic-ray", "init", str(config), str(session)], **run)
     subprocess.run(["cr-filter-operators", str(session), str(config)], **run)
+    if SAMPLE < 1.0:
+        sample(session, SAMPLE)
     subprocess.run(["cosmic-ray", "exec", str(config), str(session)], **run)
     dump = subprocess.run(["cosmic-ray", "dump", str(session)], **run).stdout
     counts = {"killed": 0, "survived": 0, "incompetent": 0, "pending": 0, "skipped": 0}
@@ -293,6 +413,29 @@ def score(module: str, work: Path, sessions: Path) -> dict:
     total = counts["killed"] + counts["survived"]
     counts["score"] = 100.0 * counts["killed"] / total if total else float("nan")
     return counts
+
+
+def in_sample(mutation: dict, fraction: float) -> bool:
+    """Whether a mutant is in the ``fraction`` sample: a hash of its module, operator and
+    occurrence (not cosmic-ray's random job id), so every session of a module draws the
+    same mutants."""
+    key = f"{mutation['module_path']}|{mutation['operator_name']}|{mutation['occurrence']}"
+    return int(hashlib.sha256(key.encode()).hexdigest()[:8], 16) < fraction * 16**8
+
+
+def sample(session: Path, fraction: float) -> None:
+    """Skip the pending mutants outside the ``fraction`` sample (``--sample``)."""
+    from cosmic_ray.work_db import use_db
+    from cosmic_ray.work_item import WorkerOutcome, WorkResult
+
+    with use_db(str(session)) as db:
+        for item in list(db.pending_work_items):
+            m = item.mutations[0]
+            if not in_sample({"module_path": str(m.module_path),
+                              "operator_name": m.operator_name,
+                              "occurrence": m.occurrence}, fraction):
+                db.set_result(item.job_id, WorkResult(output="not in the --sample",
+                                                      worker_outcome=WorkerOutcome.SKIPPED))
 
 
 def survivors(session: Path, timeouts: bool = False) -> list[dict]:
@@ -318,36 +461,44 @@ def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = Fa
     cmd = [sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests]
     alive = []
     found = survivors(session, timeouts)
-    for m in found:
-        with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
-            work = Path(tmp)
-            scratch_copy(work)
-            source = (work / m["module_path"]).read_bytes()
+    env = {**os.environ, "PYTHONDONTWRITEBYTECODE": "1"}  # no stale .pyc between mutants
+    with tempfile.TemporaryDirectory(prefix="flexdof-mutant-") as tmp:
+        work = Path(tmp)
+        scratch_copy(work)  # once: each mutant is applied to it and undone after
+        for m in found:
+            target = work / m["module_path"]
+            source = target.read_bytes()
             applied = subprocess.run(["cosmic-ray", "apply", m["module_path"],
                                       m["operator_name"], str(m["occurrence"])], cwd=work,
                                      capture_output=True, check=False)
-            unchanged = (work / m["module_path"]).read_bytes() == source
-            if applied.returncode != 0 or unchanged:  # the code changed since the session
-                # (cosmic-ray apply exits 0 without changing anything when the occurrence is gone)
-                print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
-                continue
+            unchanged = target.read_bytes() == source
             try:
-                proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
-                                      check=False, timeout=10 * TIMEOUT)
-                code = proc.returncode
-            except subprocess.TimeoutExpired:
-                code = "timeout"
-        line = m["start_pos"][0]
-        src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
-        # 1: a test failed, 2: collection failed (the mutant breaks an import);
-        # 3-5 are pytest's own errors (a bad node id): never a kill
-        verdict = {0: "SURVIVED", 1: "KILLED", 2: "KILLED", "timeout": "TIMEOUT"}.get(code,
-                                                                                   "ERROR")
-        print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
-              flush=True)
-        if verdict in ("SURVIVED", "ERROR"):  # a hang at 10x the timeout counts as a kill
-            alive.append(m)
+                if applied.returncode != 0 or unchanged:  # the code changed since the session
+                    # (cosmic-ray apply exits 0 without changing anything when it is gone)
+                    print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
+                    continue
+                try:
+                    proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
+                                          check=False, timeout=10 * TIMEOUT, env=env)
+                    code = proc.returncode
+                except subprocess.TimeoutExpired:
+                    code = "timeout"
+            finally:
+                target.write_bytes(source)
+            _report(m, code, alive)
     print(f"{module}: {len(found) - len(alive)} of {len(found)} survivors now killed")
+
+
+def _report(m: dict, code, alive: list) -> None:
+    line = m["start_pos"][0]
+    src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
+    # 1: a test failed, 2: collection failed (the mutant breaks an import);
+    # 3-5 are pytest's own errors (a bad node id): never a kill
+    verdict = {0: "SURVIVED", 1: "KILLED", 2: "KILLED", "timeout": "TIMEOUT"}.get(code, "ERROR")
+    print(f"{verdict:8s} {m['operator_name']} #{m['occurrence']} line {line}: {src[:70]}",
+          flush=True)
+    if verdict in ("SURVIVED", "ERROR"):  # a hang at 10x the timeout counts as a kill
+        alive.append(m)
 
 
 def main(argv=None) -> int:
@@ -362,9 +513,12 @@ def main(argv=None) -> int:
     parser.add_argument("--timeouts", action="store_true",
                         help="with --recheck: also re-run the mutants that timed out")
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds per mutant")
+    parser.add_argument("--sample", type=float, default=1.0, metavar="FRACTION",
+                        help="run only this fraction of the mutants (a fixed hash sample)")
     args = parser.parse_args(argv)
-    global TIMEOUT
+    global TIMEOUT, SAMPLE
     TIMEOUT = args.timeout
+    SAMPLE = args.sample
     if args.recheck:
         for module in args.modules:
             recheck(module, args.recheck, args.full, args.timeouts)
