@@ -207,7 +207,7 @@ def test_white_prior_fit_uses_the_kernels_energy():
     x = 0.5 + s0 * rng.standard_normal((256, 256))
     y = np.real(np.fft.ifft2(np.fft.fft2(x) * np.fft.fft2(_on_grid(kernel, x.shape))))
     y += sigma * rng.standard_normal(y.shape)
-    p = dc.plan(y, kernel, method="wiener", noise_sigma=sigma, prior="white")
+    p = dc.plan(y, kernel, method="wiener", noise_sigma=sigma, prior="white", auto="prior")
     assert float(p.params["lam"][0]) == pytest.approx(sigma**2 / s0**2, rel=0.03)
 
 
@@ -250,9 +250,9 @@ def test_pure_noise_gets_the_largest_natural_prior_lam():
     rng = np.random.default_rng(8)
     sigma = 0.02
     y = 0.5 + sigma * rng.standard_normal((128, 128))
-    p = dc.plan(y, np.ones((1, 1)), method="wiener", noise_sigma=sigma)
+    p = dc.plan(y, np.ones((1, 1)), method="wiener", noise_sigma=sigma, auto="prior")
     assert float(p.params["lam"][0]) == pytest.approx(0.25, rel=1e-12)
-    p = dc.plan(y, np.ones((1, 1)), method="wiener", noise_sigma=sigma, prior="white")
+    p = dc.plan(y, np.ones((1, 1)), method="wiener", noise_sigma=sigma, prior="white", auto="prior")
     assert float(p.params["lam"][0]) == pytest.approx(1.0, rel=1e-12)  # floor sigma^2
 
 
