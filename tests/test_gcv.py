@@ -121,3 +121,40 @@ def test_gcv_with_a_kernel_variance_wider_than_the_crop():
     samples = np.stack([kernel, np.roll(kernel, 3, axis=1), np.roll(kernel, -2, axis=0)])
     p = plan(y, kernel, method="wiener", noise_sigma=0.01, kernel_samples=samples)
     assert np.all(np.isfinite(p.params["lam"]))
+
+
+@pytest.mark.parametrize("lam", [1e-3, 0.05])
+def test_gcv_noise_is_wahbas_estimate_from_the_matrices(lam):
+    """``sigma^2 = |(I - A) y|^2 / tr(I - A)`` with the explicit influence matrix."""
+    rng = np.random.default_rng(6)
+    y = rng.uniform(0.0, 1.0, (5, 6))
+    kernel = _asymmetric_kernel()
+    mirrored = np.pad(y, [(0, 5), (0, 6)], mode="symmetric")
+    h = _circulant(kernel, mirrored.shape)
+    dx = _circulant(np.array([[0.0, -1.0, 1.0]]), mirrored.shape)
+    dy = _circulant(np.array([[0.0], [-1.0], [1.0]]), mirrored.shape)
+    a = h @ np.linalg.solve(h.T @ h + lam * (dx.T @ dx + dy.T @ dy), h.T)
+    flat = mirrored.ravel() - mirrored.mean()
+    residual = flat - a @ flat
+    want = np.sqrt(float(residual @ residual) / float(np.trace(np.eye(flat.size) - a)))
+    grid = _grid(y, kernel)
+    got = gcv.gcv_noise(lam, gcv._spectra(y, grid), mirrored.size)
+    assert got == pytest.approx(want, rel=1e-9)
+
+
+def test_the_refined_lam_is_the_fine_grid_minimum():
+    rng = np.random.default_rng(7)
+    x = ndimage.gaussian_filter(rng.uniform(0, 1, (64, 64)), 1.0)
+    kernel = np.zeros((9, 9))
+    kernel[4, 1:8] = 1.0
+    kernel[2:4, 6] = 0.5
+    kernel /= kernel.sum()
+    y = ndimage.convolve(x, kernel, mode="wrap") + rng.normal(0, 0.01, x.shape)
+    grid = _grid(y, kernel)
+    lam, noise = gcv.gcv_regularization(y, grid)
+    spectra = gcv._spectra(y, grid)
+    fine = np.logspace(-7, 1, 1601)  # 0.005 decade
+    scores = [gcv.gcv_score(t, spectra) for t in fine]
+    assert np.log10(lam) == pytest.approx(np.log10(fine[int(np.argmin(scores))]), abs=0.01)
+    size = 4 * y.shape[0] * y.shape[1]
+    assert noise == pytest.approx(gcv.gcv_noise(lam, spectra, size), rel=1e-12)

@@ -289,6 +289,14 @@ MODULES["core/deconvolve/wiener.py"] = _DEC
 FULL["core/deconvolve/wiener.py"] = _DEC
 MODULES["core/deconvolve/common.py"] = [*_DEC, _TL]
 FULL["core/deconvolve/common.py"] = [*_DEC, _TL]
+_GCV = [
+    "tests/test_gcv.py",
+    "tests/test_wiener_lens_psf.py::test_a_delta_kernel_leaves_a_checkerboard_alone",
+]
+MODULES["core/deconvolve/gcv.py"] = _GCV
+FULL["core/deconvolve/gcv.py"] = [*_GCV, "tests/test_references.py"]
+MODULES["core/frame_support.py"] = ["tests/test_frame_support.py"]
+FULL["core/frame_support.py"] = ["tests/test_frame_support.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
