@@ -147,6 +147,18 @@ def test_prefer_sharpest_ignores_noise_below_the_floor():
     assert fraction == 0.0
 
 
+def test_prefer_sharpest_keeps_pixels_at_white_in_the_sharpest_frame():
+    truth, frames, blurred = _two_depth_scene()
+    for frame in frames:
+        frame[..., 0] = np.where(truth[..., 0] > 0.5, 1.5, frame[..., 0])  # red beyond white
+    support = _streamed(frames, [0, 1])
+    hazy = 0.5 * blurred + 0.5 * truth
+    out, _ = fs.prefer_sharpest(hazy.copy(), support)
+    at_white = truth[..., 0] > 0.5
+    np.testing.assert_array_equal(out[at_white], hazy[at_white])  # its codes end at white
+    assert np.abs(out - hazy)[~at_white].max() > 0.05  # elsewhere it still blends
+
+
 def test_frame_noise_reads_the_frames_noise_and_the_ceiling_has_a_floor():
     rng = np.random.default_rng(6)
     base = np.full((300, 300, 3), 0.4, np.float32)

@@ -41,16 +41,21 @@ def _difference_power(shape) -> np.ndarray:
     return np.abs(np.fft.fft2(dx)) ** 2 + np.abs(np.fft.fft2(dy)) ** 2
 
 
+def _regulariser(prior, shape):
+    """The regulariser's full-grid spectrum: forward differences, or flat without the mean."""
+    if prior == "natural":
+        return _difference_power(shape)
+    reg = np.ones(shape)
+    reg[0, 0] = 0.0
+    return reg
+
+
 def reference_wiener(y, kernel, lam, prior="natural", samples=None):
     rows, cols = y.shape
     mirrored = np.block([[y, y[:, ::-1]], [y[::-1, :], y[::-1, ::-1]]])
     shape = mirrored.shape
     k_fft = np.fft.fft2(_on_grid(kernel, shape))
-    if prior == "natural":
-        reg = _difference_power(shape)
-    else:
-        reg = np.ones(shape)
-        reg[0, 0] = 0.0
+    reg = _regulariser(prior, shape)
     variance = 0.0
     if samples is not None:
         variance = np.mean(
@@ -115,11 +120,7 @@ def test_kernel_samples_add_their_spread_to_the_denominator(transpose):
 def _gain_by_parseval(kernel, lam, prior, shape):
     """sqrt(mean |G|^2) over the full grid = sqrt(sum h^2) of the impulse response."""
     k_fft = np.fft.fft2(_on_grid(kernel, shape))
-    if prior == "natural":
-        reg = _difference_power(shape)
-    else:
-        reg = np.ones(shape)
-        reg[0, 0] = 0.0
+    reg = _regulariser(prior, shape)
     h = np.fft.ifft2(np.conj(k_fft) / (np.abs(k_fft) ** 2 + lam * reg)).real
     return float(np.sqrt(np.sum(h**2)))
 
