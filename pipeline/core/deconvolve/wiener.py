@@ -25,29 +25,35 @@ from pipeline.core.deconvolve.common import (
 from pipeline.errors import InputError
 
 
-def _natural_prior_scale(y, valid, sigma, kernel) -> np.ndarray:
-    """Gradient variance ``s2`` of the sharp image under the 1/|w|^2 prior, per channel.
+def _natural_prior_scale(y, valid, sigma, kernel, channels=None) -> np.ndarray:
+    """Gradient variance ``s2`` of the sharp image under the 1/|w|^2 prior, per channel
+    (of ``channels``, default all; ``sigma`` is given for those).
 
     With ``E|X(w)|^2 = N s2 / |D(w)|^2`` (``D`` the forward-difference pair), Parseval
     gives ``mean|grad y|^2 = s2 sum(k^2) + 4 sigma^2``; solve for ``s2``.
     """
+    channels = range(y.shape[2]) if channels is None else channels
     energy = np.array(
-        map_channels(lambda c: _gradient_energy_2d(y[..., c], valid[..., c]), y.shape[2])
+        map_channels(
+            lambda i: _gradient_energy_2d(y[..., channels[i]], valid[..., channels[i]]),
+            len(channels),
+        )
     )
     s2 = (energy - 4.0 * sigma**2) / float(np.sum(kernel**2))
     return np.maximum(s2, 4.0 * sigma**2)
 
 
 AUTO_RULES = ("gcv", "prior")  # how lam is chosen when not given
-def _prior_scale(y, valid, sigma, kernel, prior) -> np.ndarray:
-    """The sharp image's spectrum scale per channel under ``prior`` (the prior fit)."""
+def _prior_scale(y, valid, sigma, kernel, prior, channels) -> np.ndarray:
+    """The sharp image's spectrum scale under ``prior`` (the prior fit), one value for
+    each of ``channels`` (``sigma`` is given for those)."""
     if prior == "natural":
-        return _natural_prior_scale(y, valid, sigma, kernel)
+        return _natural_prior_scale(y, valid, sigma, kernel, channels)
     # white spectrum: E|X|^2 = N s0^2, var(y) = s0^2 sum(k^2) + sigma^2
     var = np.array(
         [
             float(np.var(y[..., c][valid[..., c]])) if valid[..., c].any() else 0.0
-            for c in range(y.shape[2])
+            for c in channels
         ]
     )
     return np.maximum((var - sigma**2) / float(np.sum(kernel**2)), sigma**2)
@@ -228,8 +234,7 @@ def _plan_wiener(
     lam = _per_channel("regularization", regularization, y.shape[2])
     variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
     if lam is None:
-        scale = _prior_scale(y, valid, sigma, k, prior)
-        lam = np.divide(sigma**2, scale, out=np.zeros_like(sigma), where=scale > 0)
+        lam = np.zeros_like(sigma)
         # the kernel variance is the spectrum of an autocorrelation, 2k - 1 px wide
         support = k.shape if variance is None else tuple(2 * n - 1 for n in k.shape)
         shape = gcv.crop_shape(y.shape, support)
@@ -240,6 +245,12 @@ def _plan_wiener(
             for c, (lam_gcv, noise_gcv) in enumerate(found):
                 if sigma[c] / gcv.GCV_TRUST <= noise_gcv <= gcv.GCV_TRUST * sigma[c]:
                     lam[c], trusted[c] = lam_gcv, True
+        fit = np.flatnonzero(~trusted)  # the prior fit decides elsewhere
+        if fit.size:
+            scale = _prior_scale(y, valid, sigma[fit], k, prior, fit)
+            lam[fit] = np.divide(
+                sigma[fit] ** 2, scale, out=np.zeros_like(scale), where=scale > 0
+            )
         # never amplify white noise by more than noise_gain (issue 13), nor ever by more
         # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
         # lens PSF's spectral zeros amplify round-off (issue 14: an 89 px pillbox, -11 dB)
