@@ -111,14 +111,19 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def entry() -> None:
-    """The ``flexdof`` console script: :func:`main`, then exit without a last full walk.
+    """The ``flexdof`` console script: :func:`main`, with the garbage collector tuned for a
+    process that imports much and then works on few, large objects (issue 15).
 
-    ``gc.freeze()`` moves every object alive at the end (the imported modules' ~10^5)
-    out of the garbage collector's reach: the interpreter's teardown then frees them by
-    reference counting alone instead of also traversing them (60 of the 85 ms teardown
-    of ``flexdof stack`` on pcb7, issue 15). Only for the process's last moments:
-    :func:`main` itself is also called in-process (tests, scripts).
+    The first generation is collected every 20000 net allocations instead of 700: the
+    ~10^5 objects of the imports (numpy, scipy, dask, OpenCV) otherwise trigger ~130
+    collections, 30 ms of ``flexdof stack``'s start-up; cycles are still collected
+    (long ``workflow`` runs), only less often. At the end ``gc.freeze()`` moves every
+    object still alive out of the collector's reach, so the interpreter's teardown frees
+    them by reference counting alone instead of also traversing them (60 of its 85 ms
+    on pcb7). Only for the console script: :func:`main` is also called in-process
+    (tests, scripts).
     """
+    gc.set_threshold(20_000, 10, 10)
     code = main()
     gc.freeze()
     sys.exit(code)

@@ -17,6 +17,7 @@ import signal
 import socket
 import tempfile
 import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -39,6 +40,7 @@ WRITE_ENCODINGS = {
     ".jpeg": ("srgb8",),
 }
 JPEG_QUALITY = 95
+QUANTISE_THREADS = min(4, os.cpu_count() or 1)  # row blocks encoded side by side
 
 _TIFF_MARK = "flexdof transfer={}"
 
@@ -271,15 +273,29 @@ def encode_json(path: str | Path, obj: object) -> bytes:
 
 
 def _quantise(image: np.ndarray, bits: int, transfer: str, path: Path) -> np.ndarray:
-    """Clip to [0, 1] (logged), encode and round to ``bits``-bit integers."""
-    clipped = np.clip(image, 0.0, 1.0)
-    outside = int(np.count_nonzero(clipped != image))
+    """Clip to [0, 1] (logged), encode and round to ``bits``-bit integers.
+
+    Elementwise, so the rows are encoded in ``QUANTISE_THREADS`` blocks side by side (numpy
+    and OpenCV release the GIL): one third of the write's time on a 3 Mpx image (issue 15).
+    """
+    out = np.empty(image.shape, np.uint8 if bits == 8 else np.uint16)
+    edges = np.linspace(0, image.shape[0], QUANTISE_THREADS + 1).astype(int)
+    blocks = [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
+    def encode(rows: slice) -> int:
+        part = image[rows]
+        clipped = np.clip(part, 0.0, 1.0)
+        outside = int(np.count_nonzero(clipped != part))
+        if transfer == "srgb":
+            clipped = linear_to_srgb(clipped)
+        out[rows] = np.rint(clipped * (2**bits - 1))
+        return outside
+
+    with ThreadPoolExecutor(len(blocks), thread_name_prefix="flexdof-encode") as pool:
+        outside = sum(pool.map(encode, blocks))
     if outside:
         log.info("%s: clipped %d of %d values to [0, 1] for encoding", path, outside, image.size)
-    if transfer == "srgb":
-        clipped = linear_to_srgb(clipped)
-    top = 2**bits - 1
-    return np.rint(clipped * top).astype(np.uint8 if bits == 8 else np.uint16)
+    return out
 
 
 def _check_image(image: np.ndarray, path: Path) -> np.ndarray:
