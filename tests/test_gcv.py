@@ -158,3 +158,40 @@ def test_the_refined_lam_is_the_fine_grid_minimum():
     assert np.log10(lam) == pytest.approx(np.log10(fine[int(np.argmin(scores))]), abs=0.01)
     size = 4 * y.shape[0] * y.shape[1]
     assert noise == pytest.approx(gcv.gcv_noise(lam, spectra, size), rel=1e-12)
+
+
+@pytest.mark.parametrize("lam", [1e-3, 0.05])
+def test_gcv_with_a_kernel_variance_equals_the_matrix_gcv(lam):
+    """With per-depth kernels ``H_u`` around the one used, ``H``, the estimate minimising the
+    expected error is ``(H^T H + C + lam D^T D)^-1 H^T y``, ``C = mean_u (H_u - H)^T (H_u - H)``
+    (Sec. 4.2); its influence ``A = H (H^T H + C + lam D^T D)^-1 H^T``. GCV and Wahba's
+    noise from these matrices equal :func:`gcv.gcv_score` and :func:`gcv.gcv_noise` on a
+    grid with :func:`wiener.kernel_variance` (which would pass with ``V = 0`` only if ``C``
+    were ignored: the samples differ by one-sided shifts)."""
+    from pipeline.core.deconvolve.wiener import kernel_variance
+
+    rng = np.random.default_rng(8)
+    y = rng.uniform(0.0, 1.0, (6, 7))
+    kernel = _asymmetric_kernel()
+    samples = np.stack([kernel, np.roll(kernel, 1, axis=1), np.roll(kernel, -1, axis=0)])
+    samples[2, 0, 0] += 0.05
+    mirrored = np.pad(y, [(0, 6), (0, 7)], mode="symmetric")
+    h = _circulant(kernel, mirrored.shape)
+    diffs = [_circulant(s, mirrored.shape) - h for s in samples]
+    c = sum(d.T @ d for d in diffs) / len(diffs)
+    dx = _circulant(np.array([[0.0, -1.0, 1.0]]), mirrored.shape)
+    dy = _circulant(np.array([[0.0], [-1.0], [1.0]]), mirrored.shape)
+    a = h @ np.linalg.solve(h.T @ h + c + lam * (dx.T @ dx + dy.T @ dy), h.T)
+    flat = mirrored.ravel() - mirrored.mean()
+    residual = flat - a @ flat
+    trace = float(np.trace(np.eye(flat.size) - a))
+    want_score = flat.size * float(residual @ residual) / trace**2
+    want_noise = np.sqrt(float(residual @ residual) / trace)
+
+    shape = gcv.crop_shape(y.shape, tuple(2 * n - 1 for n in kernel.shape))
+    grid = gcv.kernel_grid(shape, kernel, variance=kernel_variance(samples, kernel))
+    spectra = gcv._spectra(y, grid)
+    assert gcv.gcv_score(lam, spectra) == pytest.approx(want_score, rel=1e-9)
+    assert gcv.gcv_noise(lam, spectra, mirrored.size) == pytest.approx(want_noise, rel=1e-9)
+    without = gcv._spectra(y, gcv.kernel_grid(shape, kernel))
+    assert gcv.gcv_score(lam, without) != pytest.approx(want_score, rel=1e-3)
