@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import itertools
 import math
 
@@ -30,7 +31,8 @@ EDGE_WORK_BUDGET = 2e8  # aperture cells x time cells x layers x px of sub-apert
 _MAG_NODES = 48
 _CHECK_DEPTHS = 5
 _GAIN_PIXELS = 1024  # pixels of a band at which _Gain evaluates the gain error
-_GAIN_BLOCK = 1 << 22  # window values (pixels x kernel area) per _Gain evaluation
+_GAIN_BLOCK = 1 << 21  # window values (pixels x kernel area) per _Gain evaluation
+_GAIN_DEPTHS = 257  # true kernels per _Gain evaluation (beyond: nodes uniform in D)
 
 
 # ----------------------------------------------------------------------------- the metric
@@ -409,13 +411,14 @@ def _groups(scene: Scene, present: np.ndarray) -> list[np.ndarray]:
     return [present[(present >= lo) & (present <= hi)] for lo, hi in merged]
 
 
-def _layers(groups, near, profile, cache: _KernelCache, tol, *, hat: bool, extra=()):
+def _layers(groups, near, profile, cache: _KernelCache, tol, *, hat: bool, gain=None):
     """Depth layers of each group (:func:`_partition` in inverse depth by ``kernel_error``).
 
-    Returns the layers, the largest box-layer error and, for hat-function layers (``hat``),
-    the check depths ``[(d, a, b), ...]`` of :func:`_hat_split` over the inverse depths
-    ``near`` (those whose blur reaches the band's rows; empty for box layers). ``extra``:
-    inverse depths that must be representatives too (hat layers; :class:`_Gain`).
+    Returns the layers, the largest box-layer error, for hat-function layers (``hat``) the
+    check depths ``[(d, a, b), ...]`` of :func:`_hat_split` over the inverse depths
+    ``near`` (those whose blur reaches the band's rows; empty for box layers), and the
+    gain error. ``gain``: ``layers -> (gain error, inverse depth)`` (:meth:`_Gain.error`);
+    while the gain error exceeds ``tol`` that depth becomes a representative too.
     """
 
     def dist(a, b):
@@ -426,24 +429,31 @@ def _layers(groups, near, profile, cache: _KernelCache, tol, *, hat: bool, extra
         k = cache.spectrum(d, profile) - (1 - t) * cache.spectrum(a, profile)
         return cache.spectra.error(k - t * cache.spectrum(b, profile))
 
-    layers, start, worst, checks = [], -math.inf, 0.0, []
-    for g, present in enumerate(groups):
+    worst, split = 0.0, []
+    for present in groups:
         lo, hi = float(present[0]), float(present[-1])
         parts, err, samples = _partition(present, lo, hi, dist, tol, integer=False)
         worst = max(worst, err)
-        if hat:
-            mine = present[np.isin(present, near)]
-            forced = [d for d in extra if lo <= d <= hi]
-            parts, group_checks = _hat_split(parts, samples, mine, blend, tol, forced)
-            checks += group_checks
-        for end, rep in parts:
-            layers.append(Layer(start, end, rep, g))
-            start = end
-    if len(layers) > MAX_LAYERS:
-        raise InputError(
-            f"tolerance {tol:g} needs more than {MAX_LAYERS} layers; raise the tolerance"
-        )
-    return tuple(layers), worst, checks
+        split.append((lo, hi, parts, samples, present[np.isin(present, near)]))
+    extra: list[float] = []
+    while True:
+        layers, start, checks = [], -math.inf, []
+        for g, (lo, hi, parts, samples, mine) in enumerate(split):
+            if hat:
+                forced = [d for d in extra if lo <= d <= hi]
+                parts, group_checks = _hat_split(parts, samples, mine, blend, tol, forced)
+                checks += group_checks
+            for end, rep in parts:
+                layers.append(Layer(start, end, rep, g))
+                start = end
+        if len(layers) > MAX_LAYERS:
+            raise InputError(
+                f"tolerance {tol:g} needs more than {MAX_LAYERS} layers; raise the tolerance"
+            )
+        g_err, depth = (0.0, None) if gain is None else gain(tuple(layers))
+        if g_err <= tol or depth is None:
+            return tuple(layers), worst, checks, g_err
+        extra.append(depth)
 
 
 def _hat_split(parts, samples, present, blend, tol, forced=()):
@@ -567,19 +577,21 @@ class _Gain:
     0.029, -0.025, ..., 0.011 (per unit contrast; predicted 0.025, -0.023, ..., 0.012) at
     1e-2, where the zero-mean estimate was 0.0079: the light of row 1 (and of its mirror
     image above row 0) reached row 0 through a kernel of the wrong size.
-    ``g_p`` is computed at up to :data:`_GAIN_PIXELS` pixels of a band from the true
-    kernel (the band's IPSF) of each inverse depth in their windows; the estimate is
-    ``mu sqrt(mean g_p^2) / contrast`` (visible radiance), added in quadrature to the
-    zero-mean part (the two are uncorrelated over textures). The sub-steps' scales and
-    shifts are the magnification estimate's.
+
+    ``g_p`` is computed at up to :data:`_GAIN_PIXELS` pixels of a band with the band's
+    IPSFs: the true kernel of each inverse depth in their windows (beyond
+    :data:`_GAIN_DEPTHS` depths, split linearly between that many nodes uniform in ``D``,
+    as the brute-force reference does). The estimate is ``mu sqrt(mean g_p^2) / contrast``
+    (visible radiance), added in quadrature to the zero-mean part (the two are
+    uncorrelated over textures). The sub-steps' scales and shifts are the magnification
+    estimate's.
     """
 
     def __init__(self, scene: Scene, present: np.ndarray, half: int) -> None:
         self.present, self.half, self.shape = present, half, scene.shape
         radiance, inv = _visible(scene)
-        seen = ~np.isnan(inv)
         contrast = _contrast(scene)
-        self.ratio = float(np.mean(radiance[seen])) / contrast if contrast > 0 else 0.0
+        self.ratio = float(np.mean(radiance[~np.isnan(inv)])) / contrast if contrast > 0 else 0.0
         widths = ((half, half), (half, half))
         self.maps = []
         for s in scene.surfaces:
@@ -590,7 +602,7 @@ class _Gain:
                 (np.pad(idx, widths, mode="reflect"), np.pad(alpha, widths, mode="reflect"))
             )
 
-    def error(self, r0, r1, layers, profile, cache: _KernelCache, near):
+    def error(self, r0, r1, layers, *, profile, cache: _KernelCache, near):
         """The band's estimated gain error and the inverse depth to add as a representative.
 
         Parameters
@@ -614,13 +626,10 @@ class _Gain:
         """
         if self.ratio == 0:
             return 0.0, None
-        lens, p = cache.lens, profile.image_distances_mm
-        blur = max(float(_blur_px(lens, d, p).max()) for d in (near[0], near[-1]))
-        h = min(
-            psf.kernel_size(blur, model=cache.model, gaussian_g=lens.gaussian_g) // 2, self.half
-        )
-        size = 2 * h + 1
-        cols = self.shape[1]
+        reps = [layer.inv_rep for layer in layers]
+        # the widest kernel: a near depth's blur is largest at an end of their range
+        h = max(cache.kernel(float(d), profile).shape[0] for d in (near[0], near[-1], *reps)) // 2
+        size, cols = 2 * h + 1, self.shape[1]
         n = max(1, min(_GAIN_PIXELS, _GAIN_BLOCK // size**2))
         step = math.ceil(math.sqrt((r1 - r0) * cols / n))
         rr, cc = np.meshgrid(
@@ -635,30 +644,33 @@ class _Gain:
             return 0.0, None
         inv = self.present[used]
         ends = np.array([layer.inv_hi for layer in layers])
-        lo, theta = composite._hat(inv, layers, np.searchsorted(ends, inv).clip(0, len(layers) - 1))
-        top = np.minimum(lo + 1, len(layers) - 1)
+        lo, theta = composite._hat(inv, layers, np.searchsorted(ends, inv).clip(0, len(reps) - 1))
+        nodes = inv if inv.size <= _GAIN_DEPTHS else np.linspace(inv[0], inv[-1], _GAIN_DEPTHS)
+        if nodes.size > 1:
+            j = (np.searchsorted(nodes, inv, side="right") - 1).clip(0, nodes.size - 2)
+            w = np.clip((inv - nodes[j]) / (nodes[j + 1] - nodes[j]), 0.0, 1.0)
+        else:
+            j, w = np.zeros(inv.size, int), np.zeros(inv.size)
+        top, j2 = np.minimum(lo + 1, len(reps) - 1), np.minimum(j + 1, nodes.size - 1)
 
-        def grid(d):
+        def grid(d):  # the kernel on the window (the widest kernel's size)
             k = cache.kernel(float(d), profile)
-            e = (k.shape[0] - size) // 2  # crop (larger than the window) or pad
-            return k[e : e + size, e : e + size] if e >= 0 else np.pad(k, -e)
+            return np.pad(k, (size - k.shape[0]) // 2)
 
-        err = np.stack(
-            [
-                (1 - t) * grid(layers[a].inv_rep) + t * grid(layers[b].inv_rep) - grid(d)
-                for d, a, b, t in zip(inv, lo, top, theta)
-            ]
-        )
+        rendered = np.stack([grid(d) for d in reps])
+        truth = np.stack([grid(d) for d in nodes])
+        y, x = dy + h, dx + h
         gains, parts = 0.0, []
-        for w, a in windows:
-            where = np.searchsorted(used, w).clip(0, used.size - 1)
-            part = a * err[where, dy + h, dx + h]
+        for idx, alpha in windows:
+            q = np.searchsorted(used, idx).clip(0, used.size - 1)  # alpha is 0 where absent
+            e = (1 - theta[q]) * rendered[lo[q], y, x] + theta[q] * rendered[top[q], y, x]
+            e -= (1 - w[q]) * truth[j[q], y, x] + w[q] * truth[j2[q], y, x]
+            part = alpha * e
             gains = gains + part.sum(axis=(1, 2))
-            parts.append((where, part))
+            parts.append((q, part))
         worst = int(np.argmax(np.abs(gains)))
         share = sum(
-            np.bincount(where[worst].ravel(), part[worst].ravel(), used.size)
-            for where, part in parts
+            np.bincount(q[worst].ravel(), part[worst].ravel(), used.size) for q, part in parts
         )
         top_share = int(np.argmax(np.abs(share)))
         depth = float(inv[top_share]) if share[top_share] != 0 else None
@@ -1120,17 +1132,12 @@ def plan(
     for r0, r1, prof in band_specs:
         cache.clear()  # a fresh cache per band: memory does not grow with the rows
         near = _near(scene, max(0, r0 - reach), r1 + reach)
-        extra: list[float] = []
-        while True:  # representatives until the gain error is within the tolerance
-            layers, err, checks = _layers(
-                groups, near, prof, cache, tolerance, hat=not occlusion, extra=extra
-            )
-            g_err, depth = (
-                (0.0, None) if gain is None else gain.error(r0, r1, layers, prof, cache, near)
-            )
-            if g_err <= tolerance or depth is None:
-                break
-            extra.append(depth)
+        band_gain = None
+        if gain is not None:
+            band_gain = functools.partial(gain.error, r0, r1, profile=prof, cache=cache, near=near)
+        layers, err, checks, g_err = _layers(
+            groups, near, prof, cache, tolerance, hat=not occlusion, gain=band_gain
+        )
         if magnification_steps is None:
             steps, m_err, m_app, n = _magnification(
                 prof, layers, lens, model, spectra, p_ref, (rows, cols), visible[r0:r1], r0,
