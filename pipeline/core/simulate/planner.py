@@ -451,7 +451,7 @@ def _layers(groups, near, profile, cache: _KernelCache, tol, *, hat: bool, gain=
                 f"tolerance {tol:g} needs more than {MAX_LAYERS} layers; raise the tolerance"
             )
         g_err, depth = (0.0, None) if gain is None else gain(tuple(layers))
-        if g_err <= tol or depth is None:
+        if g_err <= tol or depth is None or depth in extra:  # (a depth of no group's range)
             return tuple(layers), worst, checks, g_err
         extra.append(depth)
 
@@ -581,7 +581,8 @@ class _Gain:
     ``g_p`` is computed at up to :data:`_GAIN_PIXELS` pixels of a band with the band's
     IPSFs: the true kernel of each inverse depth in their windows (beyond
     :data:`_GAIN_DEPTHS` depths, split linearly between that many nodes uniform in ``D``,
-    as the brute-force reference does). The estimate is ``mu sqrt(mean g_p^2) / contrast``
+    as the brute-force reference does; the representatives added are then nodes, at most
+    all of them). The estimate is ``mu sqrt(mean g_p^2) / contrast``
     (visible radiance), added in quadrature to the zero-mean part (the two are
     uncorrelated over textures). The sub-steps' scales and shifts are the magnification
     estimate's.
@@ -621,8 +622,8 @@ class _Gain:
         -------
         (float, float or None)
             ``mu sqrt(mean g_p^2) / contrast`` over the band's sampled pixels, and the
-            inverse depth whose light makes up most of ``g_p`` at the worst pixel (``None``
-            when every depth there is a representative).
+            inverse depth (a true kernel's) whose light makes up most of ``g_p`` at the
+            worst pixel (``None`` when each of those is a representative).
         """
         if self.ratio == 0:
             return 0.0, None
@@ -668,12 +669,16 @@ class _Gain:
             part = alpha * e
             gains = gains + part.sum(axis=(1, 2))
             parts.append((q, part))
-        worst = int(np.argmax(np.abs(gains)))
-        share = sum(
-            np.bincount(q[worst].ravel(), part[worst].ravel(), used.size) for q, part in parts
-        )
-        top_share = int(np.argmax(np.abs(share)))
-        depth = float(inv[top_share]) if share[top_share] != 0 else None
+        # the worst pixel's gain split between the true kernels' depths (nodes): the one
+        # with the largest share, made a representative, is exact there
+        worst, share = int(np.argmax(np.abs(gains))), np.zeros(nodes.size)
+        for q, part in parts:
+            q, part = q[worst].ravel(), part[worst].ravel()
+            share += np.bincount(j[q], (1 - w[q]) * part, nodes.size)
+            share += np.bincount(j2[q], w[q] * part, nodes.size)
+        share[np.isin(nodes, reps)] = 0
+        best = int(np.argmax(np.abs(share)))
+        depth = float(nodes[best]) if share[best] != 0 else None
         return self.ratio * float(np.sqrt(np.mean(gains**2))), depth
 
 
