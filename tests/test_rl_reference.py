@@ -101,6 +101,23 @@ def test_rl_with_a_mask_that_leaves_margin_pixels_unreached():
     assert out[3, 0] == pytest.approx(5.0, rel=1e-12)
 
 
+def test_rl_reach_threshold_is_relative_to_the_best_reached_pixel():
+    """``K^T M`` below 1e-6 of its maximum is "unreached". With half the pixels masked
+    (a checkerboard: the maximum is 0.7, not 1) a 1e-6 tap still reaches the margin
+    pixels only it touches, and they are updated (a threshold of ``1e-6 / max`` or
+    ``1e-6 ** max`` would leave them, and the frame edge next to them, different)."""
+    k = np.zeros((3, 5))
+    k[1, 2:] = [0.5, 0.3, 0.2 - 1e-6]
+    k[0, 0] = 1e-6  # the only tap reaching the bottom-right margin
+    rng = np.random.default_rng(13)
+    y = _blurred(_scene(14, (12, 15)), k, rng, 0.01)
+    checker = (np.indices(y.shape).sum(axis=0) % 2).astype(bool)
+    y[checker] = 9.0  # saturated: out of the data term
+    out = dc.richardson_lucy(y, k, iterations=3, noise_sigma=0.01, saturation=5.0)
+    ref = _reference_channel(y, ~checker, k, 3, _background(y, 0.01), None)
+    np.testing.assert_allclose(out, ref, rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.parametrize("damping", [1.5, 4.0])
 def test_damped_rl_equals_the_direct_sum_implementation(damping):
     """Between the limits the existing tests check: residuals of about the threshold,
