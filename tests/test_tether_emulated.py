@@ -19,7 +19,7 @@ from pipeline.io.profiles import lens_to_toml, load_lens
 from pipeline.io.read import read_frame
 from pipeline.tether.base import CapturedObject, EndStop
 from pipeline.tether.clock import VirtualClock
-from pipeline.tether.codes import OC, RC, CanonOC, NikonOC
+from pipeline.tether.codes import OC, RC, CanonOC, CanonRC, NikonOC
 from pipeline.tether.emulated.device import (
     EmulatedBackend,
     EmulatedCamera,
@@ -423,14 +423,19 @@ class _SlowCancel(EmulatedCamera):
 
 
 class _Garbled(EmulatedCamera):
-    """A body that answers with another transaction's id (``shift_tid``) or sends its data
-    phase twice (``repeat_data``), once."""
+    """A body that answers with another transaction's id (``shift_tid``), sends its data
+    phase twice (``repeat_data``) or an empty container of type ``insert_kind`` before the
+    response, once each."""
 
     shift_tid = 0
     repeat_data = False
+    insert_kind = None
 
     def _queue(self, blob):
         kind, tid = struct.unpack_from("<H", blob, 4)[0], struct.unpack_from("<I", blob, 8)[0]
+        if kind == 3 and self.insert_kind is not None:
+            super()._queue(struct.pack("<IHHI", 12, self.insert_kind, 0x1003, tid))
+            self.insert_kind = None
         if kind == 3 and self.shift_tid:
             blob = blob[:8] + struct.pack("<I", tid + self.shift_tid) + blob[12:]
             self.shift_tid = 0
@@ -459,22 +464,34 @@ def test_a_slow_cancel_is_polled_with_doubling_waits_until_idle():
     assert err.type is TetherError and clock.sleeps == [0.05, 0.1, 0.15, 0.15]
 
 
-def test_a_response_to_another_transaction_or_a_second_data_phase_is_a_protocol_error():
+def _garbled(**fault) -> tuple[_Garbled, PtpSession]:
     cam = _Garbled(CANON)
     session = _raw_session(cam)
     session.open()
+    for name, value in fault.items():
+        setattr(cam, name, value)
+    return cam, session
+
+
+def test_a_response_to_another_transaction_or_a_second_data_phase_is_a_protocol_error():
     for shift, got in ((1, 2), (-1, 0)):
-        cam.shift_tid = shift
+        _cam, session = _garbled(shift_tid=shift)
         with pytest.raises(ProtocolError, match=r"^GetDeviceInfo \(0x1001\): expected the "
-                           rf"response to transaction \d+, got a RESPONSE container for "
+                           rf"response to transaction 1, got a RESPONSE container for "
                            rf"transaction {got}$"):
             session.transaction(OC.GetDeviceInfo, want_data=True)
-        session = _raw_session(cam)  # a fresh session (ids from 1), the camera still open
-        session.is_open = True
-    cam.repeat_data = True
+    _cam, session = _garbled(repeat_data=True)
     with pytest.raises(ProtocolError, match=r"expected the response to transaction 1, got a "
                                             r"DATA container for transaction 1$"):
         session.transaction(OC.GetDeviceInfo, want_data=True)
+    # a command or an event container where the response of an operation without data
+    # belongs (neither is a data phase nor a response)
+    for kind, name in ((1, "COMMAND"), (4, "EVENT")):
+        _cam, session = _garbled(insert_kind=kind)
+        with pytest.raises(ProtocolError, match=rf"^SetRemoteMode \(0x9114\): expected the "
+                           rf"response to transaction 1, got a {name} container for "
+                           rf"transaction 1$"):
+            session.transaction(CanonOC.SetRemoteMode, (1,))
 
 
 def test_unexpected_data_is_logged_and_expected_data_is_not(caplog):
@@ -495,3 +512,34 @@ def test_transaction_ids_of_a_new_session_object_start_at_1():
     session = _raw_session(cam)
     response = session.transaction(OC.CloseSession, check=False)  # before any OpenSession
     assert response.code == RC.SessionNotOpen and _ops(cam) == [(1, OC.CloseSession)]
+
+
+def test_open_refused_with_another_code_is_an_error_without_a_close():
+    """Only SessionAlreadyOpened closes and reopens; any other refusal (a vendor code
+    sorting after it here) is raised at once. A response code below OK is no OK."""
+
+    class _Refuses(EmulatedCamera):
+        refusal = CanonRC.LowBattery
+
+        def _operate(self, op, args, data_out):
+            if op == OC.OpenSession and self.refusal is not None:
+                return self.refusal, (), None
+            return super()._operate(op, args, data_out)
+
+    cam = _Refuses(CANON)
+    session = _raw_session(cam)
+    with pytest.raises(PtpError, match=r"^OpenSession \(0x1002\) failed: LowBattery "
+                                       r"\(0xA101\)$") as err:
+        session.open()
+    assert err.value.code == CanonRC.LowBattery and not session.is_open
+    assert _ops(cam) == [(0, OC.GetDeviceInfo), (0, OC.OpenSession)]
+    cam.refusal = 0x2000  # "Undefined": not OK
+    with pytest.raises(PtpError, match=r"^OpenSession \(0x1002\) failed: 0x2000$"):
+        _raw_session(cam).open()
+
+
+def test_a_response_is_an_immutable_value():
+    session = _raw_session(EmulatedCamera(CANON))
+    response = session.transaction(OC.GetDeviceInfo, want_data=True)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        response.code = RC.GeneralError
