@@ -303,8 +303,9 @@ _GCV = [
 ]
 MODULES["core/deconvolve/gcv.py"] = _GCV
 FULL["core/deconvolve/gcv.py"] = [*_GCV, "tests/test_references.py"]
-MODULES["core/frame_support.py"] = ["tests/test_frame_support.py"]
-FULL["core/frame_support.py"] = ["tests/test_frame_support.py"]
+MODULES["core/frame_support.py"] = ["tests/test_frame_support_reference.py",
+                                    "tests/test_frame_support.py"]
+FULL["core/frame_support.py"] = MODULES["core/frame_support.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
