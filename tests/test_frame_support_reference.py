@@ -152,5 +152,44 @@ def test_any_gain_in_focus_takes_the_other_frame():
     assert 0 < fs.focus_measure(fs.to_codes(bump)).max() < 1  # below one code of measure
     support = _support([flat, bump])
     np.testing.assert_array_equal(support.sharpest, fs.to_codes(bump))
-    support = _support([flat, flat.copy()])
-    assert support.sharpest is not support.low
+    brighter = np.full((32, 32), 30000 / fs.CODE_MAX, np.float32)  # also no detail: a tie
+    np.testing.assert_array_equal(_support([flat, brighter]).sharpest, fs.to_codes(flat))
+    np.testing.assert_array_equal(_support([brighter, flat]).sharpest, fs.to_codes(brighter))
+
+
+def test_a_small_frames_noise_is_read_on_the_whole_frame():
+    rng = np.random.default_rng(3)
+    frame = (0.4 + rng.normal(0, 0.02, (40, 56, 3))).astype(np.float32)
+    frame[0, :, :] += 0.5  # a bright first row and column: a crop without them reads less
+    frame[:, 0, :] += 0.5
+    valid = np.ones(frame.shape[:2], bool)
+    want = [noise_sigma_2d(frame[..., c], valid) for c in range(3)]
+    np.testing.assert_array_equal(fs.frame_noise(frame, valid), want)
+
+
+def test_the_noise_ceiling_needs_frames_noisier_than_their_average():
+    """Averaging lowers noise: a frame noisier than the average gets a ceiling; an average
+    that reads noisier (texture, not noise) gets none."""
+    rng = np.random.default_rng(4)
+    base = np.full((64, 64, 3), 0.4, np.float32)
+    frames = [base + rng.normal(0, 0.01, base.shape).astype(np.float32) for _ in range(3)]
+    support = _support(frames)
+    none = np.zeros((64, 64), bool)
+    quiet = base + rng.normal(0, 0.003, base.shape).astype(np.float32)
+    np.testing.assert_array_equal(fs.noise_ceiling(support, quiet, none),
+                                  fs.frame_noise_ceiling(support))
+    loud = base + rng.normal(0, 0.03, base.shape).astype(np.float32)
+    assert fs.noise_ceiling(support, loud, none) is None
+
+
+def test_the_range_is_widened_by_one_code_each_way():
+    """The codes round to nearest, so a value within one code beyond the frames' range
+    is kept; two codes beyond is clipped back to one code beyond."""
+    lo, hi = 20000, 40000
+    frames = [np.full((8, 8), c / fs.CODE_MAX, np.float32) for c in (lo, hi)]
+    support = _support(frames)
+    image = np.array([lo - 0.75, lo - 2.0, hi + 0.75, hi + 2.0], np.float32) / fs.CODE_MAX
+    image = np.tile(image, (8, 2))
+    got = fs.clip_to_frames(image.copy(), support)
+    want = np.array([lo - 0.75, lo - 1, hi + 0.75, hi + 1], np.float32) / fs.CODE_MAX
+    np.testing.assert_allclose(got, np.tile(want, (8, 2)), rtol=1e-6)
