@@ -193,3 +193,26 @@ def test_the_range_is_widened_by_one_code_each_way():
     got = fs.clip_to_frames(image.copy(), support)
     want = np.array([lo - 0.75, lo - 1, hi + 0.75, hi + 1], np.float32) / fs.CODE_MAX
     np.testing.assert_allclose(got, np.tile(want, (8, 2)), rtol=1e-6)
+
+
+def test_codes_span_the_full_16_bit_range():
+    """0 and 1 are codes 0 and 65535 (nearest rounding between), white and beyond (and an
+    overflow to infinity) saturate at 65535, negatives at 0."""
+    values = np.float32([[0.0, 0.25, 0.5, 1.0, 1.5, np.inf, -0.1]])
+    np.testing.assert_array_equal(fs.to_codes(values),
+                                  [[0, 16384, 32768, 65535, 65535, 65535, 0]])
+    np.testing.assert_array_equal(fs.from_codes(np.array([[0, 65535]], np.uint16)), [[0, 1]])
+
+
+def test_a_wider_neighbourhood_is_a_wider_min_max_filter():
+    """``radius_px=3``: the range over 7 x 7 pixels (scipy's min/max filters)."""
+    rng = np.random.default_rng(5)
+    frames = [rng.uniform(0.05, 0.95, (24, 32)).astype(np.float32) for _ in range(2)]
+    support = _support(frames)
+    image = rng.uniform(-0.5, 1.5, (24, 32)).astype(np.float32)
+    got = fs.clip_to_frames(image.copy(), support, radius_px=3)
+    stacked = np.stack(frames)
+    code = 1.0 / fs.CODE_MAX
+    low = ndimage.minimum_filter(stacked.min(axis=0), size=7, mode="nearest") - code
+    high = ndimage.maximum_filter(stacked.max(axis=0), size=7, mode="nearest") + code
+    np.testing.assert_allclose(got, np.clip(image, low, high), atol=0.6 * code)
