@@ -142,3 +142,17 @@ def test_an_unknown_core_count_runs_on_one(monkeypatch):
     np.testing.assert_allclose(deconvolve_tiled(y, KERNEL, noise_sigma=0.01), want, atol=1e-12)
     tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01)
     np.testing.assert_allclose(tiled, want, atol=1e-4)
+
+
+def test_censored_colour_tiles_reach_richardson_lucy():
+    """Wiener does not read the mask; RL does: a colour frame's mask tiles (one channel,
+    broadcast) give the untiled result, which differs from ignoring the mask."""
+    y = _image((130, 120, 3), seed=6)
+    censored = np.zeros((130, 120), bool)
+    censored[::7, ::5] = True
+    y[censored] = 0.95
+    options = dict(method="rl", iterations=3, noise_sigma=0.01)
+    whole = dc.deconvolve(y, KERNEL, censored=censored, **options)
+    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, censored=censored, **options)
+    np.testing.assert_allclose(tiled, whole, atol=1e-6)
+    assert np.abs(whole - dc.deconvolve(y, KERNEL, **options)).max() > 1e-3  # the mask counts
