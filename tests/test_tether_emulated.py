@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import struct
 import tomllib
@@ -17,7 +18,8 @@ from pipeline.errors import InputError, TetherError
 from pipeline.io.profiles import lens_to_toml, load_lens
 from pipeline.io.read import read_frame
 from pipeline.tether.base import CapturedObject, EndStop
-from pipeline.tether.codes import OC, RC, CanonOC, NikonOC
+from pipeline.tether.clock import VirtualClock
+from pipeline.tether.codes import OC, RC, CanonOC, CanonRC, NikonOC
 from pipeline.tether.emulated.device import (
     EmulatedBackend,
     EmulatedCamera,
@@ -28,6 +30,7 @@ from pipeline.tether.emulated.device import (
 from pipeline.tether.emulated.personalities import CANON, EOS_SWEEP, NIKON
 from pipeline.tether.emulated.scene import UM_PER_STEP
 from pipeline.tether.flows import StackPlan, capture_stack, capture_sweep, connect
+from pipeline.tether.ptp import ProtocolError
 from pipeline.tether.session import CameraBusy, PtpError, PtpSession, UnsupportedCamera
 from pipeline.tether.transport import (
     MAX_TRANSFER,
@@ -389,3 +392,154 @@ def test_failures_raise_with_the_response_and_busy_can_be_returned_at_once():
     with pytest.raises(CameraBusy, match=r"DeviceBusy \(0x2019\) after 2 retries$") as err:
         _raw_session(cam, retries=2).transaction(CanonOC.SetRemoteMode, (1,))
     assert err.value.code == RC.DeviceBusy
+
+
+# --- mutation kills (tether/session.py) -------------------------------------------------------
+
+
+class _SleepLog(VirtualClock):
+    """A virtual clock that keeps every wait the host asks for."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.sleeps: list[float] = []
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(round(seconds, 9))
+        super().sleep(seconds)
+
+
+class _SlowCancel(EmulatedCamera):
+    """A body that reports DeviceBusy to ``busy_polls`` device-status requests after a cancel
+    (the still-image class lets a device take its time to abort a transaction)."""
+
+    busy_polls = 0
+
+    def class_request(self, request, data, length):
+        if request == 0x67 and self.busy_polls and self._hanging is None:
+            self.busy_polls -= 1
+            return struct.pack("<HH", 4, RC.DeviceBusy)
+        return super().class_request(request, data, length)
+
+
+class _Garbled(EmulatedCamera):
+    """A body that answers with another transaction's id (``shift_tid``), sends its data
+    phase twice (``repeat_data``) or an empty container of type ``insert_kind`` before the
+    response, once each."""
+
+    shift_tid = 0
+    repeat_data = False
+    insert_kind = None
+
+    def _queue(self, blob):
+        kind, tid = struct.unpack_from("<H", blob, 4)[0], struct.unpack_from("<I", blob, 8)[0]
+        if kind == 3 and self.insert_kind is not None:
+            super()._queue(struct.pack("<IHHI", 12, self.insert_kind, 0x1003, tid))
+            self.insert_kind = None
+        if kind == 3 and self.shift_tid:
+            blob = blob[:8] + struct.pack("<I", tid + self.shift_tid) + blob[12:]
+            self.shift_tid = 0
+        super()._queue(blob)
+        if kind == 2 and self.repeat_data:
+            self.repeat_data = False
+            super()._queue(blob)
+
+
+def test_a_slow_cancel_is_polled_with_doubling_waits_until_idle():
+    clock = _SleepLog()
+    cam = _SlowCancel(CANON, clock=clock)
+    session = _raw_session(cam, retries=3, backoff_s=0.05, max_backoff_s=0.15)
+    session.open()
+    cam.faults.timeout_on, cam.busy_polls = OC.GetDeviceInfo, 3  # idle at the 4th = last poll
+    with pytest.raises(TransportTimeout, match="cancelled"):
+        session.transaction(OC.GetDeviceInfo, want_data=True)
+    assert clock.sleeps == [0.05, 0.1, 0.15]  # doubled, capped at max_backoff_s
+    assert cam.cancelled == [1] and cam.busy_polls == 0
+    assert session.transaction(OC.GetDeviceInfo, want_data=True).code == RC.OK  # still usable
+    clock.sleeps.clear()
+    cam.faults.timeout_on, cam.busy_polls = OC.GetDeviceInfo, 4  # busy through every poll
+    with pytest.raises(TetherError, match=r"^camera stayed DeviceBusy \(0x2019\) after "
+                                          r"cancelling transaction 3; reset it") as err:
+        session.transaction(OC.GetDeviceInfo, want_data=True)
+    assert err.type is TetherError and clock.sleeps == [0.05, 0.1, 0.15, 0.15]
+
+
+def _garbled(**fault) -> tuple[_Garbled, PtpSession]:
+    cam = _Garbled(CANON)
+    session = _raw_session(cam)
+    session.open()
+    for name, value in fault.items():
+        setattr(cam, name, value)
+    return cam, session
+
+
+def test_a_response_to_another_transaction_or_a_second_data_phase_is_a_protocol_error():
+    for shift, got in ((1, 2), (-1, 0)):
+        _cam, session = _garbled(shift_tid=shift)
+        with pytest.raises(ProtocolError, match=r"^GetDeviceInfo \(0x1001\): expected the "
+                           rf"response to transaction 1, got a RESPONSE container for "
+                           rf"transaction {got}$"):
+            session.transaction(OC.GetDeviceInfo, want_data=True)
+    _cam, session = _garbled(repeat_data=True)
+    with pytest.raises(ProtocolError, match=r"expected the response to transaction 1, got a "
+                                            r"DATA container for transaction 1$"):
+        session.transaction(OC.GetDeviceInfo, want_data=True)
+    # a command or an event container where the response of an operation without data
+    # belongs (neither is a data phase nor a response)
+    for kind, name in ((1, "COMMAND"), (4, "EVENT")):
+        _cam, session = _garbled(insert_kind=kind)
+        with pytest.raises(ProtocolError, match=rf"^SetRemoteMode \(0x9114\): expected the "
+                           rf"response to transaction 1, got a {name} container for "
+                           rf"transaction 1$"):
+            session.transaction(CanonOC.SetRemoteMode, (1,))
+
+
+def test_unexpected_data_is_logged_and_expected_data_is_not(caplog):
+    cam = EmulatedCamera(CANON)
+    session = _raw_session(cam)
+    with caplog.at_level(logging.DEBUG, logger="pipeline.tether.session"):
+        session.open()
+        session.transaction(OC.GetDeviceInfo, want_data=True)
+        session.transaction(OC.OpenSession, (1,), check=False)  # no data phase at all
+        assert "unexpected" not in caplog.text
+        response = session.transaction(OC.GetDeviceInfo)
+    assert response.data == cam.device_info()  # kept all the same
+    assert caplog.text.count(f"sent {len(response.data)} unexpected data bytes") == 1
+
+
+def test_transaction_ids_of_a_new_session_object_start_at_1():
+    cam = EmulatedCamera(CANON)
+    session = _raw_session(cam)
+    response = session.transaction(OC.CloseSession, check=False)  # before any OpenSession
+    assert response.code == RC.SessionNotOpen and _ops(cam) == [(1, OC.CloseSession)]
+
+
+def test_open_refused_with_another_code_is_an_error_without_a_close():
+    """Only SessionAlreadyOpened closes and reopens; any other refusal (a vendor code
+    sorting after it here) is raised at once. A response code below OK is no OK."""
+
+    class _Refuses(EmulatedCamera):
+        refusal = CanonRC.LowBattery
+
+        def _operate(self, op, args, data_out):
+            if op == OC.OpenSession and self.refusal is not None:
+                return self.refusal, (), None
+            return super()._operate(op, args, data_out)
+
+    cam = _Refuses(CANON)
+    session = _raw_session(cam)
+    with pytest.raises(PtpError, match=r"^OpenSession \(0x1002\) failed: LowBattery "
+                                       r"\(0xA101\)$") as err:
+        session.open()
+    assert err.value.code == CanonRC.LowBattery and not session.is_open
+    assert _ops(cam) == [(0, OC.GetDeviceInfo), (0, OC.OpenSession)]
+    cam.refusal = 0x2000  # "Undefined": not OK
+    with pytest.raises(PtpError, match=r"^OpenSession \(0x1002\) failed: 0x2000$"):
+        _raw_session(cam).open()
+
+
+def test_a_response_is_an_immutable_value():
+    session = _raw_session(EmulatedCamera(CANON))
+    response = session.transaction(OC.GetDeviceInfo, want_data=True)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        response.code = RC.GeneralError

@@ -250,3 +250,12 @@ def test_object_info_leaves_unset_fields_zero_and_needs_its_file_name():
     assert ObjectInfo.from_bytes(blob[:52] + b"\x00") == ObjectInfo(1234, "")  # empty name
     with pytest.raises(ProtocolError, match="too short: 52 bytes"):
         ObjectInfo.from_bytes(blob[:52])
+
+
+# --- mutation kills (helper mut11) -------------------------------------------------------------
+
+
+def test_a_negative_transfer_size_is_refused_even_when_a_packet_multiple():
+    with pytest.raises(ValueError, match="positive multiple"):
+        split_transfers(bytes(10), 512, -512)  # -512 % 512 == 0: only the sign refuses it
+

@@ -122,3 +122,37 @@ def test_dask_channels_in_separate_chunks_keep_their_own_noise_levels():
     whole = dc.deconvolve(y, KERNEL, noise_sigma=sigmas)  # would be restored as channel 0
     tiled = deconvolve_tiled(da.from_array(y, chunks=(70, 60, 1)), KERNEL, noise_sigma=sigmas)
     np.testing.assert_allclose(tiled.compute(), whole, atol=1e-6)
+
+
+# --- mutation kills (helper mut11) -------------------------------------------------------------
+
+
+def test_the_default_tile_is_1024_px(calls):
+    y = _image((1030, 16), seed=4)
+    deconvolve_tiled(y, KERNEL, overlap_px=3, noise_sigma=0.01, auto="prior")
+    assert sorted(s for s, _ in calls) == _tiles(1030, 16, 1024, 3) == [(9, 16), (1027, 16)]
+
+
+def test_an_unknown_core_count_runs_on_one(monkeypatch):
+    """``os.cpu_count()`` may return None (documented): the FFTs and channels then use one
+    thread, on both paths, with the same result."""
+    y = _image((80, 70, 2), seed=5)
+    want = dc.deconvolve(y, KERNEL, noise_sigma=0.01)
+    monkeypatch.setattr(tiling.os, "cpu_count", lambda: None)
+    np.testing.assert_allclose(deconvolve_tiled(y, KERNEL, noise_sigma=0.01), want, atol=1e-12)
+    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01)
+    np.testing.assert_allclose(tiled, want, atol=1e-4)
+
+
+def test_censored_colour_tiles_reach_richardson_lucy():
+    """Wiener does not read the mask; RL does: a colour frame's mask tiles (one channel,
+    broadcast) give the untiled result, which differs from ignoring the mask."""
+    y = _image((130, 120, 3), seed=6)
+    censored = np.zeros((130, 120), bool)
+    censored[::7, ::5] = True
+    y[censored] = 0.95
+    options = dict(method="rl", iterations=3, noise_sigma=0.01)
+    whole = dc.deconvolve(y, KERNEL, censored=censored, **options)
+    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, censored=censored, **options)
+    np.testing.assert_allclose(tiled, whole, atol=1e-6)
+    assert np.abs(whole - dc.deconvolve(y, KERNEL, **options)).max() > 1e-3  # the mask counts

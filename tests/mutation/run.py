@@ -69,7 +69,14 @@ _TETHER_FAST = [
         "test_open_closes_a_stale_session_and_transaction_ids_restart",
         "test_session_vendor_comes_from_the_extension_id_before_the_usb_vendor",
         "test_supports_and_require_name_what_is_missing",
-        "test_failures_raise_with_the_response_and_busy_can_be_returned_at_once")),
+        "test_failures_raise_with_the_response_and_busy_can_be_returned_at_once",
+        # helper mut11's session kills
+        "test_a_slow_cancel_is_polled_with_doubling_waits_until_idle",
+        "test_a_response_to_another_transaction_or_a_second_data_phase_is_a_protocol_error",
+        "test_unexpected_data_is_logged_and_expected_data_is_not",
+        "test_transaction_ids_of_a_new_session_object_start_at_1",
+        "test_open_refused_with_another_code_is_an_error_without_a_close",
+        "test_a_response_is_an_immutable_value")),
     f"{_E}::test_downloads_with_zlp_on_both_directions", f"{_E}::test_busy_responses_are_retried",
     f"{_E}::test_timeout_cancels_and_session_stays_usable",
     f"{_E}::test_unsupported_camera_names_missing_operations",
@@ -123,6 +130,7 @@ MODULES.update({
     "tether/ptp.py": _TETHER_FAST,
     "tether/session.py": _TETHER_FAST,
     "core/deconvolve/rl.py": [
+        "tests/test_rl_reference.py",  # helper mut11: against direct sums (~1 s)
         "tests/test_deconvolve.py::test_damped_rl_limits_are_plain_rl_and_no_update",
         "tests/test_deconvolve.py::test_rl_transfer_is_the_iterated_landweber_step",
         "tests/test_deconvolve.py::test_bad_method_and_options_rejected",
@@ -148,7 +156,7 @@ FULL: dict[str, list[str]] = {
     "core/align.py": ["tests/test_align.py", _K],
     "tether/ptp.py": _TETHER_FULL,
     "tether/session.py": _TETHER_FULL,
-    "core/deconvolve/rl.py": DECONVOLVE,
+    "core/deconvolve/rl.py": [*DECONVOLVE, "tests/test_rl_reference.py"],
 }
 # ---- fast selections (helper mutW): weights, accumulate, dispatch, tiling ---------------------
 _WT = "tests/test_weights.py"
@@ -295,8 +303,9 @@ _GCV = [
 ]
 MODULES["core/deconvolve/gcv.py"] = _GCV
 FULL["core/deconvolve/gcv.py"] = [*_GCV, "tests/test_references.py"]
-MODULES["core/frame_support.py"] = ["tests/test_frame_support.py"]
-FULL["core/frame_support.py"] = ["tests/test_frame_support.py"]
+MODULES["core/frame_support.py"] = ["tests/test_frame_support_reference.py",
+                                    "tests/test_frame_support.py"]
+FULL["core/frame_support.py"] = MODULES["core/frame_support.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
