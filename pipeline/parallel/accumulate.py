@@ -22,7 +22,6 @@ SATURATION = 0.999  # normalised level at and above which a pixel is treated as 
 # so the output's bits, then depend only on the frames (with one lane per worker, 2% of
 # pcb7's 16-bit values moved by 1 code between --threads 1 and 2).
 LANES = 2
-_IDENTITY = np.eye(3)
 
 
 # ----------------------------------------------------------------------------- frame leaves
@@ -36,8 +35,8 @@ def _warped_leaf(path: str, homography, weight, shape, support: bool = False):
     t0 = time.perf_counter()
     frame = read_frame(path)
     read_s = time.perf_counter() - t0
-    if homography is not None and not np.array_equal(homography, _IDENTITY):
-        frame = align.warp(frame, homography, shape)  # (the identity would copy the frame)
+    if homography is not None:
+        frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
     stats = FrameSupport.of_frame(frame, ~clipped) if support else None
     if np.ndim(weight) == 0:
