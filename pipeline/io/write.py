@@ -9,6 +9,7 @@ import contextlib
 import errno
 import glob
 import io
+import itertools
 import json
 import logging
 import os
@@ -280,7 +281,7 @@ def _quantise(image: np.ndarray, bits: int, transfer: str, path: Path) -> np.nda
     """
     out = np.empty(image.shape, np.uint8 if bits == 8 else np.uint16)
     edges = np.linspace(0, image.shape[0], QUANTISE_THREADS + 1).astype(int)
-    blocks = [slice(a, b) for a, b in zip(edges[:-1], edges[1:]) if b > a]
+    blocks = [slice(a, b) for a, b in itertools.pairwise(edges) if b > a]
 
     def encode(rows: slice) -> int:
         part = image[rows]

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import functools
+import itertools
 import tempfile
 from pathlib import Path
 
@@ -57,12 +58,31 @@ def psnr(image: np.ndarray, truth: np.ndarray) -> float:
 
 def corner_error_px(homographies, shape) -> float:
     rows, cols = shape[:2]
-    corners = np.array([[0, cols - 1, 0, cols - 1], [0, 0, rows - 1, rows - 1], [1, 1, 1, 1]], float)
+    corners = np.array(
+        [[0, cols - 1, 0, cols - 1], [0, 0, rows - 1, rows - 1], [1, 1, 1, 1]], float
+    )
     worst = 0.0
     for h in homographies:
         moved = np.asarray(h) @ corners
         worst = max(worst, float(np.max(np.hypot(*(moved[:2] / moved[2] - corners[:2])))))
     return worst
+
+
+def compare_models(stack: Path, out: Path, truth, breathing: bool):
+    """PSNR cells (``--align none``, then each model) and corner displacements of a stack."""
+    estimate = align.estimate_alignment
+    cells = [f"{psnr(process_stack(stack, out, StackOptions(align='none')).image, truth):.2f}"]
+    corners = []
+    for model in MODELS:
+        align.estimate_alignment = functools.partial(estimate, model=model)
+        try:
+            result = process_stack(stack, out, StackOptions())
+        finally:
+            align.estimate_alignment = estimate
+        cells.append(f"{psnr(result.image, truth):.2f}")
+        homographies = [f["homography"] for f in result.sidecar["frames"]]
+        corners.append("-" if breathing else f"{corner_error_px(homographies, SHAPE):.2f}")
+    return cells, corners
 
 
 def main(argv=None) -> int:
@@ -71,7 +91,6 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     radiance, depth = scenes.edges_scene(SHAPE)
     lens = scenes.scene_lens(SHAPE)
-    estimate = align.estimate_alignment
     rows = [
         "# Alignment with and without focus breathing (issue 13)",
         "",
@@ -84,30 +103,19 @@ def main(argv=None) -> int:
         "|---|---|---|---|" + "---|" * len(MODELS) + "---|",
     ]
     with tempfile.TemporaryDirectory(prefix="align_bench_") as tmp:
-        for breathing in (False, True):
-            for frames in (8, 24):
-                for noisy in (False, True):
-                    d = Path(tmp) / f"{breathing}_{frames}_{noisy}"
-                    if breathing:
-                        scenes.write_stack(d, radiance, depth, lens, frames, noisy=noisy, tolerance=1e-3)
-                    else:
-                        write_without_breathing(d, radiance, depth, lens, frames, noisy)
-                    out = Path(tmp) / "out.tif"
-                    cells = [f"{psnr(process_stack(d, out, StackOptions(align='none')).image, radiance):.2f}"]
-                    corners = []
-                    for model in MODELS:
-                        align.estimate_alignment = functools.partial(estimate, model=model)
-                        try:
-                            result = process_stack(d, out, StackOptions())
-                        finally:
-                            align.estimate_alignment = estimate
-                        cells.append(f"{psnr(result.image, radiance):.2f}")
-                        hs = [f["homography"] for f in result.sidecar["frames"]]
-                        corners.append(f"{corner_error_px(hs, SHAPE):.2f}" if not breathing else "-")
-                    line = (f"| {'yes' if breathing else 'no'} | {frames} | {'yes' if noisy else 'no'} | "
-                            + " | ".join(cells) + " | " + ", ".join(corners) + " |")
-                    print(line, flush=True)
-                    rows.append(line)
+        for breathing, frames, noisy in itertools.product((False, True), (8, 24), (False, True)):
+            d = Path(tmp) / f"{breathing}_{frames}_{noisy}"
+            if breathing:
+                scenes.write_stack(d, radiance, depth, lens, frames, noisy=noisy, tolerance=1e-3)
+            else:
+                write_without_breathing(d, radiance, depth, lens, frames, noisy)
+            cells, corners = compare_models(d, Path(tmp) / "out.tif", radiance, breathing)
+            line = (
+                f"| {'yes' if breathing else 'no'} | {frames} | {'yes' if noisy else 'no'} | "
+                + " | ".join(cells) + " | " + ", ".join(corners) + " |"
+            )
+            print(line, flush=True)
+            rows.append(line)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "align_without_breathing.md").write_text("\n".join(rows) + "\n", encoding="utf-8")
     print(f"wrote {args.out / 'align_without_breathing.md'}")
