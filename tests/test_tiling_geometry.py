@@ -156,3 +156,17 @@ def test_censored_colour_tiles_reach_richardson_lucy():
     tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, censored=censored, **options)
     np.testing.assert_allclose(tiled, whole, atol=1e-6)
     assert np.abs(whole - dc.deconvolve(y, KERNEL, **options)).max() > 1e-3  # the mask counts
+
+
+def test_richardson_lucy_is_tiled_and_only_the_sparse_method_is_restored_whole(
+    calls, monkeypatch
+):
+    """Over the whole-frame limit a linear method's tiles overlap by its reach; the sparse
+    method (non-linear: tiles differ at any overlap) is one tile whatever its size."""
+    monkeypatch.setattr(tiling, "WHOLE_FRAME_PX", 1)
+    y = _image((200, 190), seed=3)
+    deconvolve_tiled(y, KERNEL, method="rl", tile_px=64, noise_sigma=0.01, iterations=2)
+    assert len(calls) > 1 and all(s[0] < 200 or s[1] < 190 for s, _ in calls)
+    calls.clear()
+    deconvolve_tiled(y, KERNEL, method="sparse", tile_px=64, noise_sigma=0.01, iterations=2)
+    assert [s for s, _ in calls] == [(200, 190)]
