@@ -111,8 +111,12 @@ def deconvolve_tiled(
     cores = os.cpu_count() or 1
     if not lazy and overlap_px is None and whole.shape[0] * whole.shape[1] <= WHOLE_FRAME_PX:
         # one level of parallelism: the colour channels side by side (each with
-        # single-threaded FFTs), or, for one channel, the FFTs' threads
-        with sfft.set_workers(cores), channel_threads(cores):
+        # single-threaded FFTs), or, for one channel, the FFTs' threads. With two cores or
+        # more every channel gets its own thread: three as 2 + 1 rounds on two cores left
+        # one idle a third of the time (pcb7's deconvolution 0.37 -> 0.35 s, same bits)
+        channels = whole.shape[2] if whole.ndim == 3 else 1
+        threads = cores if cores == 1 else max(cores, channels)
+        with sfft.set_workers(cores), channel_threads(threads):
             p = dc.plan(
                 whole, kernel, method=method, saturation=saturation, censored=censored, **options
             )
