@@ -43,7 +43,6 @@ def _natural_prior_scale(y, valid, sigma, kernel, channels=None) -> np.ndarray:
     return np.maximum(s2, 4.0 * sigma**2)
 
 
-AUTO_RULES = ("gcv", "prior")  # how lam is chosen when not given
 def _prior_scale(y, valid, sigma, kernel, prior, channels) -> np.ndarray:
     """The sharp image's spectrum scale under ``prior`` (the prior fit), one value for
     each of ``channels`` (``sigma`` is given for those)."""
@@ -59,6 +58,7 @@ def _prior_scale(y, valid, sigma, kernel, prior, channels) -> np.ndarray:
     return np.maximum((var - sigma**2) / float(np.sum(kernel**2)), sigma**2)
 
 
+AUTO_RULES = ("gcv", "prior")  # how lam is chosen when not given
 MAX_NOISE_GAIN = 10.0  # ceiling of the automatic Wiener filter's white-noise gain
 # Width of the fade to the mean beyond the reflected ``pad``: the fade starts ``pad`` (the
 # filter's reach, mass beyond it < 1e-5) from the frame, so its width does not reach the
