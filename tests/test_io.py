@@ -210,6 +210,69 @@ def test_subject_distance(tmp_path, shared_data):
     assert subject_distance_mm(shared_data / "raw-dng-canon550d" / "colorchart.dng") is None
 
 
+@settings(max_examples=40, deadline=None)
+@given(
+    numerator=st.integers(0, 0xFFFFFFFF),
+    denominator=st.integers(1, 0xFFFFFFFF),
+    other_tags=st.integers(0, 6),
+    big_endian=st.booleans(),
+)
+def test_subject_distance_reader_agrees_with_pillow(
+    tmp_path_factory, numerator, denominator, other_tags, big_endian
+):
+    """The EXIF walk reads what pillow (an independent writer and parser) put there, among
+    other tags of both IFDs, in either byte order; pillow's own reading is the reference."""
+    exif = Image.Exif()
+    exif.endian = ">" if big_endian else "<"
+    for i in range(other_tags):
+        # IFD0 text tags (description, make, model, software, artist, copyright): the
+        # Exif IFD pointer is not the first entry, nor the last
+        exif[(0x010E, 0x010F, 0x0110, 0x0131, 0x013B, 0x8298)[i]] = f"tag {i}"
+        exif.get_ifd(0x8769)[0x9000 + i] = IFDRational(i + 1, 3)
+    exif.get_ifd(0x8769)[0x9206] = IFDRational(numerator, denominator)
+    block = exif.tobytes()
+    assert block[6:8] == (b"MM" if big_endian else b"II")
+    out = tmp_path_factory.mktemp("exif") / "d.jpg"
+    write_image(out, np.zeros((4, 4), np.float32), exif=block)
+    reference = Image.Exif()
+    reference.load(read_exif(out))
+    value = reference.get_ifd(0x8769)[0x9206]
+    expected = (
+        math.inf
+        if value.numerator == 0xFFFFFFFF
+        else None
+        if value.numerator == 0
+        else value.numerator / value.denominator * 1e3
+    )
+    got = subject_distance_mm(out)
+    assert got == (
+        pytest.approx(expected, rel=1e-12) if expected not in (None, math.inf) else expected
+    )
+
+
+def test_subject_distance_of_malformed_exif_blocks_is_absent(tmp_path):
+    """Truncated or foreign blocks, a pointer past the end, a SubjectDistance of the wrong
+    type: no value and no exception (the frame still loads, positions come from elsewhere)."""
+    exif = Image.Exif()
+    exif.get_ifd(0x8769)[0x9206] = IFDRational(1234, 1000)
+    good = exif.tobytes()
+    wrong_type = Image.Exif()
+    wrong_type.get_ifd(0x8769)[0x9206] = 7  # a SHORT, not a RATIONAL
+    blocks = [
+        good[:12],
+        good[:-4],
+        b"Exif\x00\x00XX*\x00\x08\x00\x00\x00",
+        good[:10] + b"\xff\xff\xff\x00" + good[14:],
+        wrong_type.tobytes(),
+    ]
+    for i, block in enumerate(blocks):
+        out = tmp_path / f"m{i}.jpg"
+        write_image(out, np.zeros((4, 4), np.float32), exif=block)
+        assert subject_distance_mm(out) is None, i
+    write_image(tmp_path / "g.jpg", np.zeros((4, 4), np.float32), exif=good)
+    assert subject_distance_mm(tmp_path / "g.jpg") == pytest.approx(1234.0)
+
+
 def test_write_json(tmp_path):
     write_json(tmp_path / "r.json", {"a": np.float32(0.5), "h": np.eye(2), "p": tmp_path})
     assert (tmp_path / "r.json").read_text().startswith("{\n")
