@@ -87,6 +87,46 @@ def tune_process() -> None:
         pass
 
 
+# numpy submodules that numpy imports lazily and no job of the pipeline uses
+UNUSED_NUMPY_SUBMODULES = frozenset(
+    {"testing", "f2py", "ma", "ctypeslib", "rec", "char", "strings", "random"}
+)
+
+
+def import_scipy_lean() -> None:
+    """Import ``scipy.fft`` and ``scipy.special`` without the numpy submodules they do not
+    use (issue 15: about 60 ms, a twentieth of ``flexdof stack`` on a 7-frame stack).
+
+    scipy's array-API layer (``scipy._lib.array_api_compat.numpy``, loaded by every scipy
+    subpackage) clones numpy's namespace with ``from numpy import *`` and ``hasattr`` over
+    ``dir(numpy)``; numpy lists its lazily loaded submodules in both ``__all__`` and
+    ``__dir__``, so the clone imports ``numpy.testing``, ``numpy.f2py``, ``numpy.ma`` and
+    others. While scipy loads, both leave out :data:`UNUSED_NUMPY_SUBMODULES` not yet
+    imported; they stay importable and load on first use as before (``np.random`` in the
+    simulator, for one). Only the clone's namespace lacks them: it is scipy's array-API
+    view of numpy, whose standard has none of them. Does nothing where numpy has no
+    ``__dir__`` of its own or scipy's layer is already loaded.
+    """
+    import numpy
+
+    listed, exported = numpy.__dict__.get("__dir__"), numpy.__dict__.get("__all__")
+    if listed is None or exported is None or "scipy._lib._array_api" in sys.modules:
+        return
+
+    def lean(names) -> list[str]:
+        return [
+            name
+            for name in names
+            if name not in UNUSED_NUMPY_SUBMODULES or f"numpy.{name}" in sys.modules
+        ]
+
+    numpy.__dir__, numpy.__all__ = (lambda: lean(listed())), lean(exported)
+    try:
+        from scipy import fft, special  # noqa: F401  (loaded here, used by the jobs)
+    finally:
+        numpy.__dir__, numpy.__all__ = listed, exported
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run the CLI; user errors are printed as one line and give exit code 2."""
     parser = build_parser()
@@ -96,6 +136,7 @@ def main(argv: list[str] | None = None) -> int:
     configure_logging(args.quiet, args.verbose)
     try:
         tune_process()
+        import_scipy_lean()
         from pipeline.io.write import install_signal_cleanup  # imports numpy: not for --help
 
         install_signal_cleanup()  # SIGTERM (kill, systemctl stop) cleans up like Ctrl-C

@@ -2,6 +2,8 @@
 
 import json
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -88,3 +90,26 @@ def test_verbose_shows_flexdof_debug_but_not_the_libraries():
     finally:
         logging.getLogger().setLevel(saved[0])
         logging.getLogger("pipeline").setLevel(saved[1])
+
+
+def test_scipy_is_imported_without_numpys_unused_submodules():
+    """A fresh interpreter: scipy.fft works after the lean import, numpy's unused lazy
+    submodules were not loaded by it, and numpy's ``__all__``/``dir`` are as before (the
+    submodules still load on first use)."""
+    code = """
+import sys, numpy
+before_all, before_dir = list(numpy.__all__), sorted(dir(numpy))
+from pipeline.cli import import_scipy_lean, UNUSED_NUMPY_SUBMODULES
+import_scipy_lean()
+import scipy.fft, scipy.special
+loaded = sorted(n for n in ('testing', 'f2py', 'ma', 'ctypeslib') if 'numpy.' + n in sys.modules)
+assert loaded == [], loaded
+assert numpy.__all__ == before_all and sorted(dir(numpy)) == before_dir
+x = numpy.array([1.0, 2.0, 0.5, -1.0])
+assert numpy.allclose(scipy.fft.irfft(scipy.fft.rfft(x), n=4), x)
+assert abs(scipy.special.erf(0.5) - 0.5204998778130465) < 1e-15
+assert numpy.ma.masked_array([1, 2], mask=[0, 1]).sum() == 1
+print('ok')
+"""
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    assert done.stdout.strip() == "ok", done.stderr
