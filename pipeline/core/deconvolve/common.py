@@ -136,7 +136,8 @@ def _valid_mask(y: np.ndarray, saturation: float | None, censored=None) -> np.nd
         censored = np.asarray(censored, dtype=bool)
         if censored.shape != y.shape[:2]:
             raise InputError(f"censored must have shape {y.shape[:2]}, got {censored.shape}")
-        valid &= ~censored[..., np.newaxis]
+        valid[censored] = False  # every channel; a (rows, cols, 1) operand broadcast
+        # over 3 channels runs numpy's inner loop 3 elements at a time (3x slower)
     return valid
 
 
