@@ -14,12 +14,19 @@ another tool's result and is left out) and pcb10 (``pcb10/pcb_*.JPG``, 10 frames
   included;
 * ``focus-stack``: ``focus-stack --output=OUT.png FRAMES`` (its defaults: all cores).
 
-Each repeat runs the three commands once, in an order rotated from repeat to repeat
-(so none always runs first or last on a shared machine), after one unrecorded warm-up
-round (page cache, .pyc). Every command is timed as a whole process: wall time from
-spawn to reap, peak resident memory (``ru_maxrss``) and CPU time (user + system) of
-the process from ``os.wait4``'s rusage, taken by a small ``python -S`` launcher (see
-:data:`LAUNCHER`; its ~10 MiB is the floor of the RSS figures). Reported: median
+Each repeat runs the commands once, in the orders of a balanced Latin square
+(:func:`balanced_orders`: over ``n`` repeats, ``2n`` for an odd number ``n`` of commands,
+every command runs right after every other command equally often), after one unrecorded
+warm-up round (page cache, .pyc). A plain rotation put flexdof right after focus-stack in
+3 of 4 rounds, and a process that follows focus-stack (~900 MiB freed) decodes and
+accumulates 0.1-0.2 s slower on this VM: numpy asks for transparent huge pages
+(``madvise``), which then need compaction (pcb7 after focus-stack 1.30-1.38 s, after
+flexdof 1.11-1.17 s; with ``NUMPY_MADVISE_HUGEPAGE=0`` 1.19-1.24 s after either).
+
+Every command is timed as a whole process: wall time from spawn to reap, peak resident
+memory (``ru_maxrss``) and CPU time (user + system) of the process from ``os.wait4``'s
+rusage, taken by a small ``python -S`` launcher (see :data:`LAUNCHER`; its ~10 MiB is
+the floor of the RSS figures). Reported: median
 [min-max] per command, and the ratios flexdof/focus-stack and flexdof/decode both as
 the median of the per-repeat (paired) ratios and as the ratio of medians.
 
@@ -142,14 +149,30 @@ def commands_for(
     return cmds
 
 
+def balanced_orders(n: int) -> list[list[int]]:
+    """Orders of ``n`` commands (a Williams design): in ``n`` orders for even ``n`` (``2n``,
+    each also reversed, for odd ``n``) every command directly follows every other one the
+    same number of times, so no command always runs after the same neighbour.
+
+    >>> balanced_orders(4)
+    [[0, 1, 3, 2], [1, 2, 0, 3], [2, 3, 1, 0], [3, 0, 2, 1]]
+    """
+    first = [0]
+    for k in range(1, n):  # 0, 1, n-1, 2, n-2, ...
+        first.append((k + 1) // 2 if k % 2 else n - k // 2)
+    rows = [[(i + r) % n for i in first] for r in range(n)]
+    return rows if n % 2 == 0 else rows + [row[::-1] for row in rows]
+
+
 def alternate(cmds: dict[str, list[str]], repeats: int, cwd: Path, log) -> dict[str, list[dict]]:
-    """One warm-up round, then ``repeats`` rounds with the order rotated each round."""
+    """One warm-up round, then ``repeats`` rounds in the orders of :func:`balanced_orders`."""
     names = list(cmds)
     for name in names:
         run_process(cmds[name], cwd)
     runs: dict[str, list[dict]] = {name: [] for name in names}
+    orders = balanced_orders(len(names))
     for r in range(repeats):
-        order = names[r % len(names) :] + names[: r % len(names)]
+        order = [names[i] for i in orders[r % len(orders)]]
         for name in order:
             m = run_process(cmds[name], cwd)
             m["round"] = r
@@ -287,8 +310,8 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
         "# flexdof vs focus-stack vs decoding alone (whole processes)",
         "",
         f"`python tests/benchmarks/bench_vs_peer.py` — {args.repeats} paired rounds after one "
-        "warm-up round, command order rotated per round; wall time and peak RSS (`ru_maxrss`) "
-        "of each whole process; median [min-max].",
+        "warm-up round, command orders from a balanced Latin square; wall time and peak RSS "
+        "(`ru_maxrss`) of each whole process; median [min-max].",
         "",
     ]
     if note:
@@ -375,7 +398,8 @@ def scaling(args, peer, note, log) -> tuple[dict, str]:
         "",
         f"`python tests/benchmarks/bench_vs_peer.py --scaling` — pcb7's 7 frames copied "
         f"under new names to 14 and 28 frames, and upsampled to 4096x3072 (12 Mpx); "
-        f"{args.repeats} rounds after a warm-up, order rotated; median [min-max].",
+        f"{args.repeats} rounds after a warm-up, orders from a balanced Latin square; "
+        "median [min-max].",
         "",
     ]
     if note:
