@@ -96,19 +96,31 @@ def test_censored_pixels_are_tiled_with_the_image():
     censored[::7, ::5] = True
     y[censored] = 0.95
     whole = dc.deconvolve(y, KERNEL, noise_sigma=0.01, saturation=0.9, censored=censored)
-    tiled = deconvolve_tiled(y, KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01,
-                             saturation=0.9, censored=censored)
+    tiled = deconvolve_tiled(
+        y, KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01, saturation=0.9, censored=censored
+    )
     np.testing.assert_allclose(tiled, whole, atol=1e-4)
-    grey = deconvolve_tiled(y[..., 1], KERNEL, tile_px=64, overlap_px=40, noise_sigma=0.01,
-                            saturation=0.9, censored=censored)
+    grey = deconvolve_tiled(
+        y[..., 1],
+        KERNEL,
+        tile_px=64,
+        overlap_px=40,
+        noise_sigma=0.01,
+        saturation=0.9,
+        censored=censored,
+    )
     np.testing.assert_allclose(grey, whole[..., 1], atol=1e-4)
 
 
 def test_tile_and_overlap_bounds():
     y = _image((20, 20))
     for tile_px, overlap_px in ((1, None), (64, 0)):  # both accepted
-        assert deconvolve_tiled(y, KERNEL, tile_px=tile_px, overlap_px=overlap_px,
-                                noise_sigma=0.01).shape == y.shape
+        assert (
+            deconvolve_tiled(
+                y, KERNEL, tile_px=tile_px, overlap_px=overlap_px, noise_sigma=0.01
+            ).shape
+            == y.shape
+        )
     for bad in (-1, True):
         with pytest.raises(InputError, match="overlap_px"):
             deconvolve_tiled(y, KERNEL, overlap_px=bad)
@@ -144,6 +156,32 @@ def test_an_unknown_core_count_runs_on_one(monkeypatch):
     np.testing.assert_allclose(tiled, want, atol=1e-4)
 
 
+@pytest.mark.parametrize(
+    ("cores", "limit_px", "threads"),
+    [(2, 10**6, 3), (2, 100, 2), (4, 10**6, 4), (1, 10**6, 1), (8, 100, 8)],
+)
+def test_channel_threads_beyond_the_cores_only_for_small_frames(
+    monkeypatch, cores, limit_px, threads
+):
+    """Three channels on two cores get three threads up to CHANNEL_PER_THREAD_PX (a core
+    is not left idle a third of the time), one per core above it (the third channel's
+    grids cost memory), one with one core; the result is the same either way."""
+    y = _image((60, 50, 3), seed=7)
+    want = dc.deconvolve(y, KERNEL, noise_sigma=0.01)
+    seen = []
+    real = tiling.channel_threads
+
+    def recording(n):
+        seen.append(n)
+        return real(n)
+
+    monkeypatch.setattr(tiling.os, "cpu_count", lambda: cores)
+    monkeypatch.setattr(tiling, "CHANNEL_PER_THREAD_PX", limit_px)
+    monkeypatch.setattr(tiling, "channel_threads", recording)
+    np.testing.assert_allclose(deconvolve_tiled(y, KERNEL, noise_sigma=0.01), want, atol=1e-12)
+    assert seen == [threads]
+
+
 def test_censored_colour_tiles_reach_richardson_lucy():
     """Wiener does not read the mask; RL does: a colour frame's mask tiles (one channel,
     broadcast) give the untiled result, which differs from ignoring the mask."""
@@ -158,9 +196,7 @@ def test_censored_colour_tiles_reach_richardson_lucy():
     assert np.abs(whole - dc.deconvolve(y, KERNEL, **options)).max() > 1e-3  # the mask counts
 
 
-def test_richardson_lucy_is_tiled_and_only_the_sparse_method_is_restored_whole(
-    calls, monkeypatch
-):
+def test_richardson_lucy_is_tiled_and_only_the_sparse_method_is_restored_whole(calls, monkeypatch):
     """Over the whole-frame limit a linear method's tiles overlap by its reach; the sparse
     method (non-linear: tiles differ at any overlap) is one tile whatever its size."""
     monkeypatch.setattr(tiling, "WHOLE_FRAME_PX", 1)
