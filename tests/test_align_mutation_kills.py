@@ -926,3 +926,18 @@ def test_warp_coverage_is_fractional_on_the_edge():
 def test_warp_needs_an_output_of_at_least_one_pixel(shape):
     with pytest.raises(InputError, match=r"shape must start with \(rows, cols\) >= 1"):
         warp(np.ones((4, 4), np.float32), np.eye(3), shape)
+
+
+def test_implausible_names_the_worst_perspective_and_the_determinant():
+    shape = (480, 640)
+    h = np.eye(3)
+    h[2, 0] = 1e-4  # w = 1 + 1e-4 x: 1.0639 at the far corners
+    assert align._implausible(h, shape) == "strong perspective terms (|w - 1| up to 0.064)"
+    h[2, 1] = -2e-4  # w = 1 - 2e-4 * 479 at (0, 479): 0.9042
+    assert align._implausible(h, shape) == "strong perspective terms (|w - 1| up to 0.096)"
+    assert align._implausible(np.diag([-2.0, 3.0, 1.0]), shape) == (
+        "degenerate or mirroring homography (det of linear part -6)"
+    )
+    assert align._implausible(2.0 * np.diag([3.0, 3.0, 1.0]), shape) == (
+        "implausible scale 3.000 (outside 0.5..2.0)"
+    )
