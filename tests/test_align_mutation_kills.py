@@ -941,3 +941,16 @@ def test_implausible_names_the_worst_perspective_and_the_determinant():
     assert align._implausible(2.0 * np.diag([3.0, 3.0, 1.0]), shape) == (
         "implausible scale 3.000 (outside 0.5..2.0)"
     )
+
+
+def test_frames_of_another_size_are_refused_larger_or_smaller_grey_or_colour():
+    a = texture((100, 200), seed=2)
+    for other in ((100, 199), (99, 200), (101, 200), (100, 201)):
+        b = texture(other, seed=3)
+        with pytest.raises(InputError, match=rf"frames\[1\] has size \({other[0]}, {other[1]}\)"):
+            estimate_alignment([a, b])
+    colour = np.dstack([a] * 3)
+    with pytest.raises(
+        InputError, match=r"frames\[1\] has size \(100, 199\) but frames\[0\] has \(100, 200\);"
+    ):
+        estimate_alignment([colour, np.dstack([texture((100, 199), seed=3)] * 3)])
