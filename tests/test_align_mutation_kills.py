@@ -954,3 +954,17 @@ def test_frames_of_another_size_are_refused_larger_or_smaller_grey_or_colour():
         InputError, match=r"frames\[1\] has size \(100, 199\) but frames\[0\] has \(100, 200\);"
     ):
         estimate_alignment([colour, np.dstack([texture((100, 199), seed=3)] * 3)])
+
+
+def test_perspective_is_limited_at_the_frame_corners_not_a_pixel_beyond():
+    """|w - 1| is linear in (x, y): its largest value over the frame is at a corner. With
+    the other perspective term of the opposite sign, a point one pixel outside the frame
+    would exceed the limit where no pixel of the frame does."""
+    shape = (480, 640)
+    for axis, far in ((0, 639), (1, 479)):
+        h = np.eye(3)
+        h[2, 1 - axis] = -6e-5
+        h[2, axis] = 0.04997 / far
+        assert align._implausible(h, shape) == "", axis
+        h[2, axis] = 0.05003 / far
+        assert "perspective" in align._implausible(h, shape), axis
