@@ -968,3 +968,13 @@ def test_perspective_is_limited_at_the_frame_corners_not_a_pixel_beyond():
         assert align._implausible(h, shape) == "", axis
         h[2, axis] = 0.05003 / far
         assert "perspective" in align._implausible(h, shape), axis
+
+
+def test_a_fallback_for_a_stack_of_more_than_256_frames_is_accepted():
+    """Lengths compared by value: ints above 256 are distinct objects in CPython."""
+    n = 300
+    frames = [np.full((8, 8), 1.0 + k, np.float32) for k in range(n)]  # textureless: fast
+    fb = analytic_alignment(np.linspace(12.0, 13.0, n), (8, 8))
+    al = estimate_alignment(frames, fallback=fb)
+    assert len(al) == n and al[0].method == "fallback"
+    np.testing.assert_array_equal(al[0].homography, fb[0].homography)
