@@ -106,6 +106,7 @@ MODULES.update({
         f"{_W}::test_bad_stacks_fail_alone_with_clear_errors",
     ],
     "core/align.py": [  # no real stacks (4 s): FULL has them
+        "tests/test_align_mutation_kills.py",  # helper mut-align: independent references (3 s)
         *(f"tests/test_align.py::{t}" for t in (
             "test_homography_round_trip", "test_compose_applies_rightmost_first",
             "test_scale_of_similarity", "test_invalid_homography",
@@ -153,7 +154,7 @@ MODULES.update({
 })
 FULL: dict[str, list[str]] = {
     "workflow/ledger.py": [_W, _R, _K],
-    "core/align.py": ["tests/test_align.py", _K],
+    "core/align.py": ["tests/test_align_mutation_kills.py", "tests/test_align.py", _K],
     "tether/ptp.py": _TETHER_FULL,
     "tether/session.py": _TETHER_FULL,
     "core/deconvolve/rl.py": [*DECONVOLVE, "tests/test_rl_reference.py"],
