@@ -1,0 +1,71 @@
+"""GCV (``pipeline.core.deconvolve.gcv``) against computations made here independently:
+the centre crop located by hand, Parseval's theorem on the mirrored crop, Wahba's noise
+from explicit influence matrices at the ``lam`` the search returns. Mutation kills
+(helper mut-sim, tests/mutation/scores_sim_gcv.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.core.deconvolve import gcv
+
+
+def _circulant(kernel: np.ndarray, shape) -> np.ndarray:
+    """Matrix of periodic convolution with ``kernel`` (centred), by explicit loops."""
+    rows, cols = shape
+    h = np.zeros((rows * cols, rows * cols))
+    kh, kw = kernel.shape
+    for r in range(rows):
+        for c in range(cols):
+            for i in range(kh):
+                for j in range(kw):
+                    src = ((r - (i - kh // 2)) % rows) * cols + (c - (j - kw // 2)) % cols
+                    h[r * cols + c, src] += kernel[i, j]
+    return h
+
+
+def _asymmetric_kernel() -> np.ndarray:
+    k = np.array([[0.0, 0.1, 0.0], [0.05, 0.5, 0.25], [0.0, 0.0, 0.1]])
+    return k / k.sum()
+
+
+def test_the_data_power_is_the_centre_crops_mirrored_spectrum_without_its_mean():
+    """A 600 x 530 image, a 31 px kernel: the crop is 256 x 256 (``GCV_CROP_PX``) at rows
+    172..427 and columns 137..392 ((600 - 256) / 2 and (530 - 256) / 2), mirrored to
+    512 x 512. Its power, taken here with a full complex FFT, equals the weighted rfft
+    power; the weights make the half spectrum sum to the whole (Parseval: N sum x^2)."""
+    rng = np.random.default_rng(11)
+    y = rng.uniform(0.0, 1.0, (600, 530)) + np.linspace(0.0, 3.0, 530)[None, :]
+    kernel = np.ones((31, 31)) / 31**2
+    shape = gcv.crop_shape(y.shape, kernel.shape)
+    assert shape == (512, 512)
+    power, weight, _, _, _ = gcv._spectra(y, gcv.kernel_grid(shape, kernel))
+    crop = y[172:428, 137:393]
+    mirrored = np.concatenate([crop, crop[::-1]], axis=0)
+    mirrored = np.concatenate([mirrored, mirrored[:, ::-1]], axis=1)
+    centred = mirrored - mirrored.mean()
+    full = np.abs(np.fft.fft2(centred)) ** 2
+    assert power.shape == (512, 257)
+    np.testing.assert_allclose(power, weight * full[:, :257], rtol=1e-9, atol=1e-6)
+    assert power[0, 0] == pytest.approx(0.0, abs=1e-6)  # the mean is taken out
+    assert power.sum() == pytest.approx(centred.size * float(np.sum(centred**2)), rel=1e-9)
+
+
+def test_the_noise_returned_with_lam_is_wahbas_noise_from_the_matrices():
+    """``gcv_regularization`` returns, beside ``lam``, ``sqrt(|(I - A) y|^2 / tr(I - A))``
+    at that ``lam`` on the whole mirrored domain (here 10 x 12 = 120 samples)."""
+    rng = np.random.default_rng(12)
+    y = rng.uniform(0.0, 1.0, (5, 6))
+    kernel = _asymmetric_kernel()
+    grid = gcv.kernel_grid(gcv.crop_shape(y.shape, kernel.shape), kernel)
+    lam, noise = gcv.gcv_regularization(y, grid)
+    mirrored = np.pad(y, [(0, 5), (0, 6)], mode="symmetric")
+    h = _circulant(kernel, mirrored.shape)
+    dx = _circulant(np.array([[0.0, -1.0, 1.0]]), mirrored.shape)
+    dy = _circulant(np.array([[0.0], [-1.0], [1.0]]), mirrored.shape)
+    a = h @ np.linalg.solve(h.T @ h + lam * (dx.T @ dx + dy.T @ dy), h.T)
+    flat = mirrored.ravel() - mirrored.mean()
+    residual = flat - a @ flat
+    want = np.sqrt(float(residual @ residual) / float(np.trace(np.eye(flat.size) - a)))
+    assert noise == pytest.approx(want, rel=1e-9)

@@ -1,0 +1,113 @@
+"""The simulator (``pipeline.core.simulate``: render, composite, edge) against computations
+made here independently: analytic zooms of ramps, explicit loops and direct sums, areas
+worked out by hand, and renders that must not depend on how the work is split (bands,
+layers). Mutation kills (helper mut-sim, tests/mutation/scores_sim_gcv.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import itertools
+
+import numpy as np
+import pytest
+
+from pipeline.core import optics, simulate
+from pipeline.core.lens import Lens
+from pipeline.core.motion import constant_speed
+from pipeline.core.scene import Camera, Scene
+
+# 5 um pixels: blurs of tens of pixels on small frames (kernels wider than the spline
+# margin of the banded render)
+render_mod = importlib.import_module("pipeline.core.simulate.render")
+
+FINE = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=5.0, width_px=48, height_px=40)
+
+
+def _texture(shape, seed):
+    rng = np.random.default_rng(seed)
+    return rng.uniform(0.0, 1.0, shape)
+
+
+# ----------------------------------------------------------------------------- render.py
+def test_scale_zooms_a_ramp_about_the_given_or_the_image_centre():
+    """A linear ramp zoomed by ``s`` about ``c`` is ``f(c + (x - c) / s)``, worked out here
+    from the ramp's formula (the cubic spline reproduces a ramp away from the borders)."""
+    rows, cols = 31, 41
+    r, c = np.mgrid[:rows, :cols].astype(float)
+    image = np.stack([0.3 * r - 0.7 * c + 20.0, -0.2 * r + 0.1 * c + 5.0], axis=2)
+
+    def ramp(rr, cc):
+        return np.stack([0.3 * rr - 0.7 * cc + 20.0, -0.2 * rr + 0.1 * cc + 5.0], axis=2)
+
+    inner = (slice(10, -10), slice(10, -10))
+    centre = np.array([15.0, 20.0])  # (rows - 1) / 2, (cols - 1) / 2
+    got = render_mod._scale(image, 1.08)
+    want = ramp(centre[0] + (r - centre[0]) / 1.08, centre[1] + (c - centre[1]) / 1.08)
+    np.testing.assert_allclose(got[inner], want[inner], atol=1e-3)
+    off = np.array([12.0, 23.5])
+    got = render_mod._scale(image, 0.95, off)
+    want = ramp(off[0] + (r - off[0]) / 0.95, off[1] + (c - off[1]) / 0.95)
+    np.testing.assert_allclose(got[inner], want[inner], atol=1e-3)
+
+
+def _sweep_scene():
+    """Two depths, 200 and 215 mm, in stripes (kernels up to 105 px at 5 um), a
+    two-channel texture whose channels differ, swept so that the image scale changes by
+    a few percent."""
+    rows, cols = 200, 24
+    rad = np.stack([_texture((rows, cols), 1), _texture((rows, cols), 2)], axis=2)
+    depth = np.where(np.mgrid[:rows, :cols][1] % 6 < 3, 200.0, 215.0)
+    scene = Scene.from_depth(rad, depth)
+    v_near, v_far = optics.image_distance(12.5, 300.0), optics.image_distance(12.5, 2000.0)
+    cam = Camera(FINE, constant_speed(v_far, (v_near - v_far) / 0.1, 0.1))
+    return scene, cam
+
+
+def test_bands_render_the_same_image_as_one_band():
+    """Rendering the rows in three bands (each with the rows that reach it) gives the same
+    image as one band: the margins hold every kernel's reach, the scaling about the
+    frame's centre moved into the band's rows, and the spline's reach. Progress counts
+    every band's steps."""
+    scene, cam = _sweep_scene()
+    pl = simulate.plan(scene, cam, tolerance=1e-3, magnification_steps=3, occlusion=False)
+    (band,) = pl.bands
+    assert len(band.steps) == 3 and band.steps[0].scale != 1.0
+    cache = simulate.planner._KernelCache(FINE, pl.model, None)
+    sizes = [cache.kernel(layer.inv_rep, s.profile, s.scale).shape[0]
+             for layer in band.layers for s in band.steps]
+    half = max(sizes) // 2
+    assert half > 50  # a margin short of a sixth of the kernel shows beyond the spline's
+    whole = simulate.render(scene, cam, plan_=pl)
+    cuts = [0, 70, 130, 200]
+    bands = [dataclasses.replace(band, row_start=a, row_stop=b)
+             for a, b in itertools.pairwise(cuts)]
+    banded = dataclasses.replace(pl, bands=tuple(bands))
+    calls = []
+    got = simulate.render(scene, cam, plan_=banded, progress=lambda d, t: calls.append((d, t)))
+    assert calls == [(i, 9) for i in range(1, 10)]
+    assert got.shape == whole.shape == (200, 24, 2)
+    np.testing.assert_allclose(got, whole, rtol=0, atol=1e-9)
+
+
+def test_a_static_frame_off_the_reference_position_is_a_zoom_about_the_frame_centre():
+    """A plane in focus at ``p = 12.9`` mm (kernel: a delta) seen with ``p_ref = 12.6``
+    is the scene zoomed by ``12.9 / 12.6`` about the centre ((rows - 1) / 2, (cols - 1) /
+    2) = (20, 24.5): on a ramp, ``f(c + (x - c) / s)`` worked out here."""
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=50,
+                height_px=41)
+    rows, cols = 41, 50
+    r, c = np.mgrid[:rows, :cols].astype(float)
+    ramp = 0.3 * r - 0.7 * c + 40.0
+    u = 1.0 / (1.0 / 12.5 - 1.0 / 12.9)
+    scene = Scene.from_depth(ramp, np.full((rows, cols), u))
+    cam = Camera.static(lens, 12.9, 0.1, reference_image_distance_mm=12.6)
+    pl = simulate.plan(scene, cam)
+    (step,) = pl.bands[0].steps
+    assert step.scale == pytest.approx(12.9 / 12.6)
+    got = simulate.render(scene, cam, plan_=pl)
+    s = 12.9 / 12.6
+    want = 0.3 * (20.0 + (r - 20.0) / s) - 0.7 * (24.5 + (c - 24.5) / s) + 40.0
+    inner = (slice(10, -10), slice(10, -10))
+    assert got.shape == (rows, cols)
+    np.testing.assert_allclose(got[inner], want[inner], atol=1e-4)
