@@ -69,3 +69,56 @@ def test_the_noise_returned_with_lam_is_wahbas_noise_from_the_matrices():
     residual = flat - a @ flat
     want = np.sqrt(float(residual @ residual) / float(np.trace(np.eye(flat.size) - a)))
     assert noise == pytest.approx(want, rel=1e-9)
+
+
+def _matrix_gcv(y, kernel, lam):
+    """GCV and Wahba's noise from the explicit influence matrix on the mirrored domain."""
+    mirrored = np.pad(y, [(0, y.shape[0]), (0, y.shape[1])], mode="symmetric")
+    h = _circulant(kernel, mirrored.shape)
+    dx = _circulant(np.array([[0.0, -1.0, 1.0]]), mirrored.shape)
+    dy = _circulant(np.array([[0.0], [-1.0], [1.0]]), mirrored.shape)
+    a = h @ np.linalg.solve(h.T @ h + lam * (dx.T @ dx + dy.T @ dy), h.T)
+    flat = mirrored.ravel() - mirrored.mean()
+    residual = flat - a @ flat
+    trace = float(np.trace(np.eye(flat.size) - a))
+    rr = float(residual @ residual)
+    return flat.size * rr / trace**2, np.sqrt(rr / trace), trace
+
+
+def test_gcv_at_the_grids_floor_where_the_trace_is_below_one():
+    """At ``lam = 1e-7`` (the coarse grid's first point) the asymmetric kernel, which has
+    no spectral zero, leaves ``tr(I - A)`` far below 1: the score still equals the
+    matrix GCV and Wahba's noise (a guard on the trace must not clip it)."""
+    rng = np.random.default_rng(13)
+    y = rng.uniform(0.0, 1.0, (6, 7))
+    kernel = _asymmetric_kernel()
+    want, noise, trace = _matrix_gcv(y, kernel, 1e-7)
+    assert 0.0 < trace < 0.1
+    spectra = gcv._spectra(y, gcv.kernel_grid(gcv.crop_shape(y.shape, kernel.shape), kernel))
+    assert gcv.gcv_score(1e-7, spectra) == pytest.approx(want, rel=1e-6)
+    assert gcv.gcv_noise(1e-7, spectra, 4 * y.size) == pytest.approx(noise, rel=1e-6)
+
+
+def test_a_minimum_in_the_grids_last_decade_is_refined_not_left_at_its_end():
+    """Strong noise (sigma 0.3 on a smooth texture): the coarse grid's best is its last
+    point, ``lam = 10``, but GCV's minimum lies inside the last decade, near 10^0.785 (a
+    0.005-decade scan of the score): the search brackets it between the last two grid
+    points and refines it."""
+    from scipy import ndimage
+
+    kernel = np.zeros((5, 5))
+    kernel[2, 1:5] = 1.0
+    kernel[0:2, 3] = 0.5
+    kernel /= kernel.sum()
+    x = ndimage.gaussian_filter(np.random.default_rng(0).uniform(0, 1, (32, 32)), 1.0)
+    y = ndimage.convolve(x, kernel, mode="wrap")
+    y = y + np.random.default_rng(1).normal(0, 0.3, x.shape)
+    grid = gcv.kernel_grid(gcv.crop_shape(y.shape, kernel.shape), kernel)
+    spectra = gcv._spectra(y, grid)
+    coarse = [gcv.gcv_score(t, spectra) for t in gcv.GCV_LAMS]
+    assert int(np.argmin(coarse)) == len(gcv.GCV_LAMS) - 1
+    fine = np.logspace(0.0, 1.0, 201)
+    best = fine[int(np.argmin([gcv.gcv_score(t, spectra) for t in fine]))]
+    assert 0.7 < np.log10(best) < 0.9
+    lam, _ = gcv.gcv_regularization(y, grid)
+    assert np.log10(lam) == pytest.approx(np.log10(best), abs=0.01)
