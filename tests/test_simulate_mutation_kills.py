@@ -50,6 +50,16 @@ def test_scale_zooms_a_ramp_about_the_given_or_the_image_centre():
     got = render_mod._scale(image, 0.95, off)
     want = ramp(off[0] + (r - off[0]) / 0.95, off[1] + (c - off[1]) / 0.95)
     np.testing.assert_allclose(got[inner], want[inner], atol=1e-3)
+    # a cubic spline reproduces cubics too (a quadratic spline would not), and its
+    # prefilter's mirrored border fades by 0.27 per px (_SPLINE_MARGIN): 1e-6 ten px in
+    # (a quartic spline's fades by 0.36: 2e-5)
+    def cubic(rr, cc):
+        u, v = rr / 10.0, cc / 10.0
+        return (u**3 - 2.0 * u * v**2 + 0.5 * v**3 + u * v)[:, :, None]
+
+    got = render_mod._scale(cubic(r, c), 1.08)
+    want = cubic(centre[0] + (r - centre[0]) / 1.08, centre[1] + (c - centre[1]) / 1.08)
+    np.testing.assert_allclose(got[inner], want[inner], rtol=0, atol=3e-6)
 
 
 def _sweep_scene():
@@ -165,3 +175,23 @@ def test_a_sweep_through_focus_on_one_side_still_has_an_edge_error():
     swept = edge.edge_error(near, far, [3.0, 4.0], [0.0, 6.0])
     assert swept > 1e-5
     assert swept == pytest.approx(edge.edge_error(near, far, [3.0, 4.0], [1e-5, 6.0]), rel=1e-3)
+    # a far side blurred by less than a pixel (radius 0.6) is not in focus: the error stays
+    assert edge.edge_error(near, far, 4.0, 0.6) > 1e-6
+
+
+@pytest.mark.parametrize("rho", [4.6, -7.3])
+def test_aperture_cells_are_bounded_by_every_pixel_line(rho):
+    """Rays through aperture point ``xi`` meet the layer at ``-rho xi``; pixel ``d`` spans
+    ``[d - 1/2, d + 1/2]``, so the lines sit at ``xi = (k + 1/2) / |rho|`` for every
+    half-integer ``k + 1/2`` inside the disk: for 4.6, 0.5 ... 4.5 (10 lines), for 7.3,
+    0.5 ... 6.5 (14), plus the aperture's rim -1, 1."""
+    r = abs(rho)
+    top = {4.6: 4.5, 7.3: 6.5}[r]
+    lines = np.arange(-top, top + 1.0) / r
+    cells, shares = edge.aperture_cells([rho])
+    want = np.concatenate([[-1.0], lines, [1.0]])
+    np.testing.assert_allclose(np.unique(cells[:, :2]), want, atol=1e-12)
+    np.testing.assert_allclose(np.unique(cells[:, 2:]), want, atol=1e-12)
+    assert shares.sum() == pytest.approx(1.0, abs=1e-12)
+    kernels = edge.cell_kernels(cells, rho, 8)
+    assert np.all(np.count_nonzero(kernels > 1e-14, axis=(1, 2)) == 1)  # one pixel per cell
