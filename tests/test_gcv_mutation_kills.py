@@ -122,3 +122,27 @@ def test_a_minimum_in_the_grids_last_decade_is_refined_not_left_at_its_end():
     assert 0.7 < np.log10(best) < 0.9
     lam, _ = gcv.gcv_regularization(y, grid)
     assert np.log10(lam) == pytest.approx(np.log10(best), abs=0.01)
+
+
+def test_a_minimum_in_the_grids_first_decade_is_refined_not_left_at_its_end():
+    """Weak noise (sigma 3e-4) on data that fit the mirrored model exactly (a white
+    texture mirrored, blurred periodically by a Gaussian, its first quadrant): the coarse
+    grid's best is its first point, ``lam = 1e-7``, but GCV's minimum lies inside the
+    first decade, near 10^-6.68 (a 0.005-decade scan): the search brackets it between
+    the first two grid points and refines it."""
+    from scipy import ndimage
+
+    x = np.random.default_rng(0).uniform(0, 1, (32, 32))
+    g = np.exp(-0.5 * np.arange(-8, 9) ** 2)
+    kernel = np.outer(g, g) / np.outer(g, g).sum()
+    mirrored = ndimage.convolve(np.pad(x, [(0, 32), (0, 32)], mode="symmetric"), kernel,
+                                mode="wrap")
+    y = mirrored[:32, :32] + np.random.default_rng(1).normal(0, 3e-4, x.shape)
+    grid = gcv.kernel_grid(gcv.crop_shape(y.shape, kernel.shape), kernel)
+    spectra = gcv._spectra(y, grid)
+    assert int(np.argmin([gcv.gcv_score(t, spectra) for t in gcv.GCV_LAMS])) == 0
+    fine = np.logspace(-7.0, -6.0, 201)
+    best = fine[int(np.argmin([gcv.gcv_score(t, spectra) for t in fine]))]
+    assert -6.8 < np.log10(best) < -6.5
+    lam, _ = gcv.gcv_regularization(y, grid)
+    assert np.log10(lam) == pytest.approx(np.log10(best), abs=0.01)
