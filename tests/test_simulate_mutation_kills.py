@@ -195,3 +195,26 @@ def test_aperture_cells_are_bounded_by_every_pixel_line(rho):
     assert shares.sum() == pytest.approx(1.0, abs=1e-12)
     kernels = edge.cell_kernels(cells, rho, 8)
     assert np.all(np.count_nonzero(kernels > 1e-14, axis=(1, 2)) == 1)  # one pixel per cell
+
+
+def test_flipping_both_radii_is_the_same_aperture_and_the_same_error():
+    """``rho -> -rho`` on both planes is the substitution ``xi -> -xi`` over the symmetric
+    aperture: the same rays, the same exact image and over model, the same error (also
+    when the planes lie on opposite sides of focus, and for a sweep)."""
+    rng = np.random.default_rng(22)
+    near, far = rng.uniform(0, 1, (16, 60)), rng.uniform(0, 1, (16, 60))
+    for rn, rf in [(4.6, 2.2), (3.3, -5.7), ([2.0, 4.6], [1.0, -3.2])]:
+        want = edge.edge_error(near, far, rn, rf)
+        assert want > 1e-5
+        got = edge.edge_error(near, far, -np.asarray(rn), -np.asarray(rf))
+        assert got == pytest.approx(want, rel=1e-9)
+
+
+def test_crop_centres_the_edge_column_in_the_mirrored_texture():
+    """``cols`` columns around the edge column, the texture continued by reflection
+    (without repeating its end columns) as far as needed: worked out by hand."""
+    tex = np.arange(5.0)[None, :]
+    np.testing.assert_array_equal(edge._crop(tex, 2, 8), [[2, 1, 0, 1, 2, 3, 4, 3]])
+    np.testing.assert_array_equal(edge._crop(tex, 1, 8), [[3, 2, 1, 0, 1, 2, 3, 4]])
+    wide = np.arange(30.0)[None, :].repeat(70, axis=0)  # at most 64 rows are read
+    np.testing.assert_array_equal(edge._crop(wide, 10, 8), np.arange(6.0, 14.0)[None].repeat(64, 0))
