@@ -17,6 +17,7 @@ from pipeline.core.lens import Lens
 from pipeline.core.motion import constant_speed
 from pipeline.core.scene import Camera, Exposure, Scene
 from pipeline.core.simulate import edge
+from pipeline.errors import InputError
 
 # 5 um pixels: blurs of tens of pixels on small frames (kernels wider than the spline
 # margin of the banded render)
@@ -159,6 +160,18 @@ def test_magnification_margins_of_a_tall_frame_reach_as_far_as_the_image_moves()
     got = simulate.render(scene, cam, plan_=dataclasses.replace(pl, bands=tuple(bands)))
     np.testing.assert_allclose(got, whole, rtol=0, atol=1e-9)
 
+
+
+def test_a_plan_made_for_another_frame_size_is_refused():
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=31,
+                height_px=20)
+    cam = Camera.static(lens, 12.7, 0.1)
+    small = Scene.from_depth(_texture((20, 30), 7), np.full((20, 30), 800.0))
+    other = Scene.from_depth(_texture((20, 31), 7), np.full((20, 31), 800.0))
+    pl = simulate.plan(small, cam)
+    assert simulate.render(small, cam, plan_=pl).shape == (20, 30)
+    with pytest.raises(InputError, match="plan is for a"):
+        simulate.render(other, cam, plan_=pl)
 
 # ----------------------------------------------------------------------------- edge.py
 def test_a_sweep_through_focus_on_one_side_still_has_an_edge_error():
