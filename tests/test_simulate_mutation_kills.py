@@ -231,3 +231,54 @@ def test_crop_centres_the_edge_column_in_the_mirrored_texture():
     np.testing.assert_array_equal(edge._crop(tex, 1, 8), [[3, 2, 1, 0, 1, 2, 3, 4]])
     wide = np.arange(30.0)[None, :].repeat(70, axis=0)  # at most 64 rows are read
     np.testing.assert_array_equal(edge._crop(wide, 10, 8), np.arange(6.0, 14.0)[None].repeat(64, 0))
+
+
+# ----------------------------------------------------------------------------- composite.py
+def test_a_plane_in_focus_is_the_scene_itself():
+    """Every kernel a delta (no padding at all): each pixel, the first row and column and
+    the last ones included, is its own radiance."""
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=30,
+                height_px=20)
+    u = 1.0 / (1.0 / 12.5 - 1.0 / 12.7)
+    rad = _texture((20, 30), 8)
+    scene = Scene.from_depth(rad, np.full((20, 30), u))
+    out = simulate.render(scene, Camera.static(lens, 12.7, 0.1))
+    np.testing.assert_allclose(out, rad, rtol=0, atol=1e-12)
+
+
+def _occluded_planes(f, rows=36, cols=44):
+    """A plane at 500 mm with an irregular outline (a notch, a tab: no symmetry) over a
+    plane at 1500 mm, textures with no symmetry either; ``f`` applied to every array."""
+    alpha = np.zeros((rows, cols))
+    alpha[9:24, 12:30] = 1.0
+    alpha[9:13, 12:16] = 0.0  # a notch
+    alpha[24:27, 20:23] = 1.0  # a tab
+    near, far = _texture((rows, cols), 9), _texture((rows, cols), 10)
+    c = np.ascontiguousarray
+    return Scene.from_planes([(c(f(far)), None, 1500.0), (c(f(near)), c(f(alpha)), 500.0)])
+
+
+@pytest.mark.parametrize("focus_mm", [800.0, 600.0, 510.0])
+@pytest.mark.parametrize("flip", ["rows", "cols", "transpose"])
+def test_flipping_the_scene_flips_the_capture(flip, focus_mm):
+    """The pillbox is symmetric under row and column flips and the transpose, so the
+    capture of a flipped scene is the flipped capture: depth edges with 'over'
+    compositing and sub-aperture cells near the occluder's outline included (any bound
+    of a block or of the edge box that is off on one side breaks it). Focused at 800 mm
+    both planes are blurred (sub-aperture cells; also at 600 mm, where the far plane has the wider
+    kernel: its block reaches the padding's first column); at 510 mm the near plane is
+    nearly sharp (a 3 px kernel: its block's bounds are one pixel beyond its outline)."""
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=44,
+                height_px=44)
+    f = {"rows": lambda a: a[::-1], "cols": lambda a: a[:, ::-1],
+         "transpose": lambda a: np.swapaxes(a, 0, 1)}[flip]
+    cam = Camera.static(lens, optics.image_distance(12.5, focus_mm), 0.1)
+    scene = _occluded_planes(lambda a: a)
+    pl = simulate.plan(scene, cam, tolerance=1e-2)
+    assert pl.occlusion and (pl.edge_time_cells > 0) == (focus_mm != 510.0)
+    base = simulate.render(scene, cam, plan_=pl)
+    flipped = _occluded_planes(f)
+    pl_f = simulate.plan(flipped, cam, tolerance=1e-2)
+    assert pl_f.edge_time_cells == pl.edge_time_cells
+    np.testing.assert_allclose(simulate.render(flipped, cam, plan_=pl_f), f(base), rtol=0,
+                               atol=1e-9)
