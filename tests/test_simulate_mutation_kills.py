@@ -285,3 +285,70 @@ def test_flipping_the_scene_flips_the_capture(flip, focus_mm, model):
     assert pl_f.edge_time_cells == pl.edge_time_cells
     np.testing.assert_allclose(simulate.render(flipped, cam, plan_=pl_f), f(base), rtol=0,
                                atol=1e-9)
+
+
+def test_a_depth_between_two_layers_blends_their_kernels_linearly_in_inverse_depth():
+    """Hat functions: a plane at inverse depth ``D = D1 + 0.25 (D2 - D1)`` between two
+    layers' representatives is ``0.75 K1 * L + 0.25 K2 * L`` (each kernel the IPSF at its
+    representative; convolved here with ``ndimage.convolve`` on the mirrored scene)."""
+    from scipy import ndimage
+
+    from pipeline.core import psf
+
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=30,
+                height_px=24)
+    d1, d2 = 1.0 / 900.0, 1.0 / 600.0
+    inv = d1 + 0.25 * (d2 - d1)
+    rad = _texture((24, 30), 11)
+    scene = Scene.from_depth(rad, np.full((24, 30), 1.0 / inv))
+    cam = Camera.static(lens, 12.75, 0.1)
+    pl = simulate.plan(scene, cam, occlusion=False)
+    layers = (simulate.Layer(-np.inf, 0.5 * (d1 + d2), d1),
+              simulate.Layer(0.5 * (d1 + d2), np.inf, d2))
+    band = dataclasses.replace(pl.bands[0], layers=layers)
+    got = simulate.render(scene, cam, plan_=dataclasses.replace(pl, bands=(band,)))
+    k1, k2 = (psf.lens_psf(lens, 1.0 / d, 12.75) for d in (d1, d2))
+    want = 0.75 * ndimage.convolve(rad, k1, mode="mirror") + 0.25 * ndimage.convolve(
+        rad, k2, mode="mirror")
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+def test_a_knot_in_the_middle_of_a_straight_sweep_changes_nothing():
+    """A constant-speed sweep written with a third knot at its midpoint is the same
+    motion: the same capture, sub-aperture time cells at an occluding edge included (they
+    must span the whole exposure, not its first segment)."""
+    from pipeline.core.motion import Profile
+
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=44,
+                height_px=36)
+    a, b = optics.image_distance(12.5, 1500.0), optics.image_distance(12.5, 500.0)
+    two = Camera(lens, Profile([0.0, 0.1], [a, b]))
+    three = Camera(lens, Profile([0.0, 0.05, 0.1], [a, 0.5 * (a + b), b]))
+    scene = _occluded_planes(lambda x: x)
+    pl = simulate.plan(scene, two, tolerance=1e-2, magnification_steps=0)
+    assert pl.edge_time_cells > 1
+    want = simulate.render(scene, two, plan_=pl)
+    band = dataclasses.replace(pl.bands[0], profile=three.motion, steps=(
+        dataclasses.replace(pl.bands[0].steps[0], profile=three.motion),))
+    got = simulate.render(scene, three, plan_=dataclasses.replace(pl, bands=(band,)))
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("focus_mm", [1000.0, 650.0])
+def test_two_depths_with_over_compositing_equal_the_per_pixel_brute_force(focus_mm):
+    """A depth map of two depths (a square at 400 mm on 1000 mm) has one layer per depth,
+    each at its exact depth: the layered 'over' render with its coverage renormalisation
+    equals ``test_simulate.brute_force`` (every scene pixel spreads its own PSF, with the
+    visibility and renormalisation rule written per pixel) to round-off."""
+    from test_simulate import LENS, brute_force
+
+    rad = _texture((24, 28), 12)
+    depth = np.full((24, 28), 1000.0)
+    depth[7:16, 8:19] = 400.0
+    scene = Scene.from_depth(rad, depth)
+    p = optics.image_distance(12.5, focus_mm)
+    cam = Camera.static(LENS, p, 0.1)
+    pl = dataclasses.replace(simulate.plan(scene, cam, tolerance=1e-3), edge_time_cells=0)
+    assert pl.occlusion and [round(1 / x.inv_rep) for x in pl.bands[0].layers] == [1000, 400]
+    ref = brute_force(rad, depth, np.ones_like(depth), LENS, p, pl.edge_inv_depth, 12)
+    np.testing.assert_allclose(simulate.render(scene, cam, plan_=pl), ref, rtol=0, atol=1e-12)
