@@ -146,3 +146,12 @@ def test_a_minimum_in_the_grids_first_decade_is_refined_not_left_at_its_end():
     assert -6.8 < np.log10(best) < -6.5
     lam, _ = gcv.gcv_regularization(y, grid)
     assert np.log10(lam) == pytest.approx(np.log10(best), abs=0.01)
+
+
+def test_the_crop_of_an_even_kernel_is_twice_its_half():
+    """Sides worked out by hand: a 600 px kernel (even) on a 1000 px frame needs a
+    600 px mirrored crop (twice half the kernel, over twice ``GCV_CROP_PX``); a 100 px
+    kernel on a 50 px frame just fits the 100 px mirrored frame (not too small)."""
+    assert gcv.crop_shape((1000, 1000), (600, 600)) == (600, 600)
+    assert gcv.crop_shape((50, 60), (100, 100)) == (100, 120)
+    assert gcv.crop_shape((50, 60), (101, 101)) is None
