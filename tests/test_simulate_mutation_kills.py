@@ -8,6 +8,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import itertools
+import math
 
 import numpy as np
 import pytest
@@ -159,6 +160,39 @@ def test_magnification_margins_of_a_tall_frame_reach_as_far_as_the_image_moves()
              for a, b in itertools.pairwise(cuts)]
     got = simulate.render(scene, cam, plan_=dataclasses.replace(pl, bands=tuple(bands)))
     np.testing.assert_allclose(got, whole, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize(("cuts", "farthest"), [
+    ([0, 400, 800, 1200, 1600], [799.5, 399.5, 399.5, 799.5]),  # rows 0, 400, 1199, 1599
+    ([0, 800, 1600], [799.5, 799.5]),
+])
+def test_each_band_renders_only_its_rows_and_what_reaches_them(monkeypatch, cuts, farthest):
+    """The work of a band: its rows plus a margin of the kernel's half, the movement of
+    its row farthest from the centre (799.5) and 12 rows of spline slack, clipped to the
+    frame; worked out here for four and two bands of a 1600-row strip (a band of the whole frame,
+    or margins from other rows, would be more work)."""
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=6,
+                height_px=1600)
+    scene = Scene.from_depth(_texture((1600, 6), 5), np.full((1600, 6), 700.0))
+    cam = Camera(lens, constant_speed(12.2, 1.2 / 0.1, 0.1))
+    pl = simulate.plan(scene, cam, tolerance=1e-2, magnification_steps=2, occlusion=False)
+    (band,) = pl.bands
+    shrink = max(abs(1 - 1 / s.scale) for s in band.steps)
+    cache = simulate.planner._KernelCache(lens, pl.model, None)
+    half = max(cache.kernel(x.inv_rep, s.profile, s.scale).shape[0]
+               for x in band.layers for s in band.steps) // 2
+    rows = []
+    layered = render_mod.composite.layered
+    monkeypatch.setattr(render_mod.composite, "layered",
+                        lambda part, *a: rows.append(part.shape[0]) or layered(part, *a))
+    bands = [dataclasses.replace(band, row_start=a, row_stop=b)
+             for a, b in itertools.pairwise(cuts)]
+    simulate.render(scene, cam, plan_=dataclasses.replace(pl, bands=tuple(bands)))
+    want = []
+    for (a, b), far in zip(itertools.pairwise(cuts), farthest):
+        m = half + math.ceil(shrink * far) + 12
+        want += [min(1600, b + m) - max(0, a - m)] * 2
+    assert rows == want
 
 
 
