@@ -369,6 +369,7 @@ for _m in ("core/simulate/render.py", "core/simulate/composite.py", "core/simula
     FULL[_m] = [*_SIM, _SR, "tests/test_applications.py",
                 "tests/test_cli_flags.py::test_render_reports_progress_per_step"]
 MODULES["core/deconvolve/gcv.py"] = ["tests/test_gcv_mutation_kills.py", *_GCV]
+FULL["core/deconvolve/gcv.py"] = [*MODULES["core/deconvolve/gcv.py"], "tests/test_references.py"]
 # ---- end of mutW's selections ----------------------------------------------------------------
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
