@@ -155,3 +155,26 @@ def test_the_crop_of_an_even_kernel_is_twice_its_half():
     assert gcv.crop_shape((1000, 1000), (600, 600)) == (600, 600)
     assert gcv.crop_shape((50, 60), (100, 100)) == (100, 120)
     assert gcv.crop_shape((50, 60), (101, 101)) is None
+
+
+@pytest.mark.parametrize(("ratio", "trusted"), [(2.0, True), (0.5, True), (3.0, False),
+                                                (1 / 3.0, False)])
+def test_gcv_is_trusted_within_a_factor_2_5_of_the_datas_noise(ratio, trusted):
+    """Wiener's automatic ``lam`` is GCV's where GCV's noise and the given noise sigma
+    agree within 2.5x either way (``GCV_TRUST``), else the prior fit's: GCV's noise 2x
+    and 0.5x the given sigma keep GCV's ``lam``; 3x and 1/3 do not."""
+    from scipy import ndimage
+
+    from pipeline.core.deconvolve.dispatch import plan
+
+    rng = np.random.default_rng(7)
+    x = ndimage.gaussian_filter(rng.uniform(0, 1, (64, 64)), 1.0)
+    kernel = np.zeros((9, 9))
+    kernel[4, 1:8] = 1.0
+    kernel[2:4, 6] = 0.5
+    kernel /= kernel.sum()
+    y = ndimage.convolve(x, kernel, mode="reflect") + rng.normal(0, 0.01, x.shape)
+    lam_gcv, noise = gcv.gcv_regularization(
+        y, gcv.kernel_grid(gcv.crop_shape(y.shape, kernel.shape), kernel))
+    p = plan(y, kernel, method="wiener", noise_sigma=noise / ratio)
+    assert (float(p.params["lam"][0]) == pytest.approx(lam_gcv, rel=1e-9)) == trusted
