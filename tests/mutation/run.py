@@ -350,6 +350,27 @@ _WF_SLOW = [  # 5-13 s each (a killed scheduler, a dashboard port, a killed run)
 for _m in ("workflow/plan.py", "workflow/run.py"):
     MODULES[_m] = _WF
     FULL[_m] = [*_WF, *_WF_SLOW]
+# ---- fast selections (helper mut-sim): the simulator's render, composite, edge ------------
+_SR = "tests/test_simulate_reference.py"
+_SIM = [  # every test under ~1 s that reaches them, cheapest first (measured, 2026-11-26);
+    # FULL adds the slow reference comparisons (rolling shutter, wide angle: 3-45 s each)
+    "tests/test_simulate_mutation_kills.py",
+    f"{_SR}::test_disk_rect_area_exact",
+    f"{_SR}::test_reference_and_simulator_agree_where_both_are_exact",
+    f"{_SR}::test_sub_aperture_cells_make_a_static_edge_exact",
+    f"{_SR}::test_edge_cells_beyond_the_work_budget_keep_over_compositing",
+    "tests/test_doctests.py::test_examples_run[pipeline.core.simulate.render]",
+    "tests/test_noise_model.py",
+    "tests/test_simulate.py",
+    f"{_SR}::test_edge_sweep_time_cells_follow_the_tolerance",
+]
+for _m in ("core/simulate/render.py", "core/simulate/composite.py", "core/simulate/edge.py",
+           "core/simulate/planner.py"):
+    MODULES[_m] = _SIM
+    FULL[_m] = [*_SIM, _SR, "tests/test_applications.py",
+                "tests/test_cli_flags.py::test_render_reports_progress_per_step"]
+MODULES["core/deconvolve/gcv.py"] = ["tests/test_gcv_mutation_kills.py", *_GCV]
+FULL["core/deconvolve/gcv.py"] = [*MODULES["core/deconvolve/gcv.py"], "tests/test_references.py"]
 # ---- end of mutW's selections ----------------------------------------------------------------
 # the scratch copy lives in /tmp: point the tests at the real data (else they skip) and
 # replay the same hypothesis examples for every mutant
