@@ -1,7 +1,7 @@
 """GCV (``pipeline.core.deconvolve.gcv``) against computations made here independently:
 the centre crop located by hand, Parseval's theorem on the mirrored crop, Wahba's noise
 from explicit influence matrices at the ``lam`` the search returns. Mutation kills
-(helper mut-sim, tests/mutation/scores_sim_gcv.md)."""
+(helper mut-sim, tests/mutation/README.md)."""
 
 from __future__ import annotations
 

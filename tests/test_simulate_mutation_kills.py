@@ -1,7 +1,7 @@
 """The simulator (``pipeline.core.simulate``: render, composite, edge) against computations
 made here independently: analytic zooms of ramps, explicit loops and direct sums, areas
 worked out by hand, and renders that must not depend on how the work is split (bands,
-layers). Mutation kills (helper mut-sim, tests/mutation/scores_sim_gcv.md)."""
+layers). Mutation kills (helper mut-sim, tests/mutation/README.md)."""
 
 from __future__ import annotations
 
