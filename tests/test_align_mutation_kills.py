@@ -1,4 +1,4 @@
-"""Mutation kills for pipeline/core/align.py (issue 11; see tests/mutation/README.md, "helper mut-align").
+"""Mutation kills for pipeline/core/align.py (issue 11; tests/mutation/README.md, mut-align).
 
 Every expectation is computed independently of the module: homographies applied by hand
 with numpy, resizes checked against block means, the ECC correlation against a
