@@ -176,6 +176,21 @@ def test_transfer_split_and_read_sizes_by_hand():
     assert read_sizes(2048, 512, 1024) == [1024, 1024]
 
 
+def test_a_string_of_only_its_terminator_is_empty_and_read_past():
+    """Some bodies send an empty string as one character (the NUL, count 1) rather than
+    count 0: it reads as "" and the next field starts two bytes later."""
+    r = Reader(b"\x01\x00\x00\x07\x00", "DeviceInfo")
+    assert r.string() == ""
+    assert r.pos == 3 and r.take("H") == 7
+
+
+def test_a_negative_packet_size_is_refused():
+    """wMaxPacketSize is unsigned; a negative size (a bug upstream) is an error, not a split
+    whose modulo happens to be 0 (512 % -512 == 0 in Python)."""
+    with pytest.raises(ValueError, match="positive multiple"):
+        split_transfers(b"x" * 600, -512, 512)
+
+
 def test_dataset_reader_and_strings_by_hand():
     r = Reader(b"\x01\x02\x03", "Thing")
     assert r.take("B") == 1 and r.take("H") == 0x0302 and r.pos == 3
