@@ -158,7 +158,17 @@ def test_an_unknown_core_count_runs_on_one(monkeypatch):
 
 @pytest.mark.parametrize(
     ("cores", "limit_px", "threads"),
-    [(2, 10**6, 3), (2, 100, 2), (4, 10**6, 4), (1, 10**6, 1), (8, 100, 8)],
+    # 60 x 50 = 3000 px: at the limit three threads, one pixel under it two (the area,
+    # not a side, its square or the sum of the sides, is compared)
+    [
+        (2, 10**6, 3),
+        (2, 100, 2),
+        (4, 10**6, 4),
+        (1, 10**6, 1),
+        (8, 100, 8),
+        (2, 3000, 3),
+        (2, 2999, 2),
+    ],
 )
 def test_channel_threads_beyond_the_cores_only_for_small_frames(
     monkeypatch, cores, limit_px, threads
@@ -180,6 +190,30 @@ def test_channel_threads_beyond_the_cores_only_for_small_frames(
     monkeypatch.setattr(tiling, "channel_threads", recording)
     np.testing.assert_allclose(deconvolve_tiled(y, KERNEL, noise_sigma=0.01), want, atol=1e-12)
     assert seen == [threads]
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.float16, np.int16])
+def test_tiled_input_of_other_types_is_restored_in_float64(dtype):
+    """The dtype policy on the tiled path: float32 stays float32, anything else is restored
+    in float64 (as :func:`dc.deconvolve` does), not in float32 because it would fit."""
+    y = (_image((70, 90), seed=8) * 100).astype(dtype)
+    options = dict(tile_px=64, overlap_px=30, noise_sigma=0.5)
+    tiled = deconvolve_tiled(y, KERNEL, **options)
+    assert tiled.dtype == dc.deconvolve(y, KERNEL, noise_sigma=0.5).dtype == np.float64
+    want = deconvolve_tiled(y.astype(np.float64), KERNEL, **options)
+    np.testing.assert_allclose(tiled, want, rtol=0, atol=1e-12)
+
+
+def test_a_lazy_wide_frame_is_one_tile_for_the_sparse_method():
+    """The sparse method is non-linear: a dask frame wider than tall, chunked in 64 px
+    tiles, is restored as one tile along both axes and equals the whole-frame result."""
+    import dask.array as da
+
+    y = _image((40, 150), seed=9).astype(np.float32)
+    options = dict(method="sparse", iterations=3, noise_sigma=0.01)
+    want = dc.deconvolve(y, KERNEL, **options)
+    tiled = deconvolve_tiled(da.from_array(y, chunks=(64, 64)), KERNEL, tile_px=64, **options)
+    np.testing.assert_allclose(np.asarray(tiled), want, atol=1e-6)
 
 
 def test_censored_colour_tiles_reach_richardson_lucy():
