@@ -46,7 +46,7 @@ MODULES: dict[str, list[str]] = {
     "parallel/tiling.py": ["tests/test_tiling.py", "tests/test_deconvolve_asymmetric.py"],
     "core/deconvolve/wiener.py": DECONVOLVE,
     "core/deconvolve/rl.py": DECONVOLVE,
-    "core/deconvolve/sparse.py": DECONVOLVE,
+    "core/deconvolve/sparse.py": ["tests/test_sparse_reference.py", *DECONVOLVE],
     "core/align.py": ["tests/test_align.py", "tests/test_issue11_kills.py"],
     "workflow/ledger.py": ["tests/test_workflow.py", "tests/test_issue11_kills.py"],
     "tether/session.py": ["tests/test_tether_ptp.py", "tests/test_tether_emulated.py",
