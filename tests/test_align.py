@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import math
@@ -449,6 +450,10 @@ def test_real_beetle_stack(shared_data):
 def test_alignment_is_a_plain_record():
     a = Alignment(np.eye(3), 1.0, "reference")
     assert a.ok and a.message == "" and a.correlation is None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        a.scale = 2.0  # records are shared between the job's stages: immutable
+    twin = Alignment(np.eye(3), 1.0, "reference")
+    assert a == a and a != twin  # identity, not field-wise (the homography is an array)
 
 
 @pytest.mark.parametrize("small", [(150, 200), (173, 231)])
