@@ -289,6 +289,22 @@ def test_estimate_direct_and_features_methods(scene):
         assert corner_error(al[0].homography, truths[0], FRAME) < 0.5
 
 
+def test_features_alone_are_matched_at_the_finest_level(scene, monkeypatch):
+    """With every ECC refinement failing, the warp is the feature match's own: it must be
+    found on the finest pyramid level (the matching image's coordinates), not a coarser one."""
+    from pipeline.core import align
+
+    def no_ecc(*args, **kwargs):
+        raise align._EstimationError("ECC disabled for this test")
+
+    monkeypatch.setattr(align, "_ecc", no_ecc)
+    truth = similarity(1.02, 0.2, (9.0, -6.0), CENTRE)
+    frames = [render(scene, truth, FRAME, OFFSET, 1.0), render(scene, np.eye(3), FRAME, OFFSET)]
+    al = estimate_alignment(frames, reference=1, method="auto", model="affine")
+    assert al[0].ok and al[0].method == "features", al[0].message
+    assert corner_error(al[0].homography, truth, FRAME) < 0.5
+
+
 def test_estimate_colour_frames_and_reduction(scene):
     """Colour input, estimated at a quarter of the resolution: the conjugated H is still exact."""
     truth = similarity(1.05, -0.4, (4.0, 3.0), CENTRE)
