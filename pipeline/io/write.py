@@ -276,11 +276,13 @@ def encode_json(path: str | Path, obj: object) -> bytes:
 def _quantise(image: np.ndarray, bits: int, transfer: str, path: Path) -> np.ndarray:
     """Clip to [0, 1] (logged), encode and round to ``bits``-bit integers.
 
-    Elementwise, so the rows are encoded in ``QUANTISE_THREADS`` blocks side by side (numpy
-    and OpenCV release the GIL): one third of the write's time on a 3 Mpx image (issue 15).
+    Elementwise, so the rows are encoded in up to ``QUANTISE_THREADS`` blocks of at least
+    256 rows side by side (numpy and OpenCV release the GIL): one third of the write's time
+    on a 3 Mpx image (issue 15); a smaller image is encoded in one pass, without a pool.
     """
     out = np.empty(image.shape, np.uint8 if bits == 8 else np.uint16)
-    edges = np.linspace(0, image.shape[0], QUANTISE_THREADS + 1).astype(int)
+    threads = min(QUANTISE_THREADS, max(1, image.shape[0] // 256))  # no pool for small images
+    edges = np.linspace(0, image.shape[0], threads + 1).astype(int)
     blocks = [slice(a, b) for a, b in itertools.pairwise(edges) if b > a]
 
     def encode(rows: slice) -> int:
@@ -292,8 +294,11 @@ def _quantise(image: np.ndarray, bits: int, transfer: str, path: Path) -> np.nda
         out[rows] = np.rint(clipped * (2**bits - 1))
         return outside
 
-    with ThreadPoolExecutor(len(blocks), thread_name_prefix="flexdof-encode") as pool:
-        outside = sum(pool.map(encode, blocks))
+    if len(blocks) == 1:
+        outside = encode(blocks[0])
+    else:
+        with ThreadPoolExecutor(len(blocks), thread_name_prefix="flexdof-encode") as pool:
+            outside = sum(pool.map(encode, blocks))
     if outside:
         log.info("%s: clipped %d of %d values to [0, 1] for encoding", path, outside, image.size)
     return out
