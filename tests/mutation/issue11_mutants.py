@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parents[2]
 MUTANTS = {
     "wiener-k-not-conj": (
         "pipeline/core/deconvolve/wiener.py",
-        "return np.conj(k_fft) / denominator",
-        "return k_fft / denominator",
+        "return np.conj(k_fft), base.astype(d2.dtype, copy=False), reg",
+        "return k_fft, base.astype(d2.dtype, copy=False), reg",
         ["tests/test_deconvolve_asymmetric.py::test_methods_undo_a_one_sided_blur_and_the_flip_does_not"],
     ),
     "rl-k-not-adjoint": (
@@ -57,8 +57,8 @@ MUTANTS = {
     ),
     "align-chain-ignored": (
         "pipeline/core/align.py",
-        "            if chain:\n                anchor = i",
-        "            if False:\n                anchor = i",
+        "                if chain:\n                    anchor = i",
+        "                if False:\n                    anchor = i",
         ["tests/test_issue11_kills.py::test_chained_alignment_matches_neighbours"],
     ),
     "align-perspective-check-off": (
@@ -81,8 +81,8 @@ MUTANTS = {
     ),
     "deleted-sidecar-no-rerun": (
         "pipeline/workflow/run.py",
-        "if output.is_file() and sidecar.is_file():",
-        "if output.is_file():",
+        "if not (output.is_file() and sidecar.is_file()):",
+        "if not output.is_file():",
         ["tests/test_issue11_kills.py::test_a_deleted_sidecar_triggers_a_rerun"],
     ),
     "focus-at-infinity-rejected": (

@@ -392,16 +392,23 @@ class _Domain:
 
 
 
+def prior_spectrum(d2: np.ndarray, prior: str) -> np.ndarray:
+    """The regulariser's spectrum on an rfft grid: ``d2 = |D|^2`` (the Laplacian's, for
+    the natural prior), else flat on the zero-mean part (the mean, DC, is not
+    regularised)."""
+    if prior == "natural":
+        return d2
+    reg = np.ones_like(d2)
+    reg[0, 0] = 0.0
+    return reg
+
+
 def spectral_grid(kernel: np.ndarray, shape: tuple[int, int], prior: str):
     """``|K|^2``, the regulariser's spectrum (``|D|^2`` for the natural prior, else flat
     with the mean unregularised) and the rfft weights (interior columns stand for two) on
     an rfft grid of ``shape``, in float64."""
     k2 = np.abs(_kernel_fft(kernel, shape, np.float64)) ** 2
-    if prior == "natural":
-        reg = _laplacian_spectrum(shape, np.float64)
-    else:
-        reg = np.ones_like(k2)
-        reg[0, 0] = 0.0
+    reg = prior_spectrum(_laplacian_spectrum(shape, np.float64), prior)
     weight = np.full(k2.shape, 2.0)
     weight[:, 0] = 1.0
     if shape[1] % 2 == 0:

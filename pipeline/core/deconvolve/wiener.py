@@ -20,6 +20,7 @@ from pipeline.core.deconvolve.common import (
     _per_channel,
     _taper_pad,
     map_channels,
+    prior_spectrum,
     spectral_grid,
 )
 from pipeline.errors import InputError
@@ -109,12 +110,7 @@ def lam_for_noise_gain(kernel, target: float, prior: str = "natural") -> float:
 
 
 def _wiener_gain(k_fft, d2, lam: float, prior: str, variance=None) -> np.ndarray:
-    if prior == "natural":
-        reg = d2
-    else:  # flat spectrum of the zero-mean part: the mean (DC) is not regularised
-        reg = np.ones_like(d2)
-        reg[0, 0] = 0.0
-    denominator = np.abs(k_fft) ** 2 + lam * reg  # Wiener, Sec. 4.3 [24]
+    denominator = np.abs(k_fft) ** 2 + lam * prior_spectrum(d2, prior)  # Wiener, Sec. 4.3 [24]
     if variance is not None:
         denominator = denominator + variance(k_fft.shape)
     return np.conj(k_fft) / denominator
@@ -154,11 +150,7 @@ def _wiener_spectra(shape, kernel, prior, variance, dtype):
     regulariser (``|D|^2`` or the flat spectrum), computed once (in ``dtype``)."""
     k_fft = _kernel_fft(kernel, shape, dtype)
     d2 = _laplacian_spectrum(shape, dtype)
-    if prior == "natural":
-        reg = d2
-    else:  # flat spectrum of the zero-mean part: the mean (DC) is not regularised
-        reg = np.ones_like(d2)
-        reg[0, 0] = 0.0
+    reg = prior_spectrum(d2, prior)
     base = np.abs(k_fft) ** 2
     if variance is not None:
         base = base + variance(k_fft.shape)
