@@ -206,9 +206,9 @@ def small_rolling(rows: int, cols: int = 32):
     return radiance, 600.0 + 600.0 * xx / (cols - 1), camera
 
 
-def test_rolling_shutter_within_estimate():
-    """6 rows at 1e-2 (the 48-row case of the benchmark is in tests/benchmarks/results)."""
-    rows = 6
+def rolling_render_and_reference(rows: int):
+    """:func:`small_rolling`'s scene planned at 1e-2 and rendered, beside the brute-force
+    reference (256 time steps, per-row windows): (radiance, plan, render, reference)."""
     radiance, depth, camera = small_rolling(rows)
     scene = Scene.from_depth(radiance, depth)
     pl = simulate.plan(scene, camera, tolerance=1e-2)
@@ -220,6 +220,13 @@ def test_rolling_shutter_within_estimate():
         positions_mm=camera.motion.image_distances_mm, p_ref_mm=camera.reference_mm,
         row_windows=camera.row_windows(rows), n_time=256,
     )
+    return radiance, pl, out, ref
+
+
+def test_rolling_shutter_within_estimate():
+    """6 rows at 1e-2 (the 48-row case of the benchmark is in tests/benchmarks/results)."""
+    rows = 6
+    radiance, pl, out, ref = rolling_render_and_reference(rows)
     assert_estimate_holds(refcases.rel_rms(out, ref, float(np.std(radiance))), pl.estimated_error)
 
 
@@ -332,16 +339,6 @@ def test_rolling_estimate_combines_the_rows_as_an_rms():
     """Each band's estimate bounds its rows' RMS error, so the image's is their row-weighted
     RMS; the maximum over 12 one-row bands was 2.2x the measured error, now 1.25x."""
     rows = 12
-    radiance, depth, camera = small_rolling(rows)
-    scene = Scene.from_depth(radiance, depth)
-    pl = simulate.plan(scene, camera, tolerance=1e-2)
-    out = simulate.render(scene, camera, plan_=pl)
-    lens = camera.lens
-    ref = smooth.render_smooth(
-        radiance, depth, f_mm=lens.focal_length_mm, f_number=lens.f_number,
-        pitch_mm=lens.pixel_pitch_mm, times_s=camera.motion.times_s,
-        positions_mm=camera.motion.image_distances_mm, p_ref_mm=camera.reference_mm,
-        row_windows=camera.row_windows(rows), n_time=256,
-    )
+    radiance, pl, out, ref = rolling_render_and_reference(rows)
     measured = refcases.rel_rms(out, ref, float(np.std(radiance)))
     assert measured <= pl.estimated_error <= 2 * measured
