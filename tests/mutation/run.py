@@ -487,8 +487,73 @@ def survivors(session: Path, timeouts: bool = False) -> list[dict]:
         job, result = json.loads(line)
         if result is not None and (result.get("test_outcome") == "survived" or (
                 timeouts and result.get("output") == "timeout")):
-            out.append(job["mutations"][0])
+            out.append({**job["mutations"][0], "diff": result.get("diff") or ""})
     return out
+
+
+def _changed_lines(diff: str) -> tuple[list[str], list[str]]:
+    """The removed and added lines of a unified diff, stripped (what a mutant changes,
+    wherever it sits in the file)."""
+    lines = diff.splitlines()
+    removed = [x[1:].strip() for x in lines if x.startswith("-") and not x.startswith("---")]
+    added = [x[1:].strip() for x in lines if x.startswith("+") and not x.startswith("+++")]
+    return removed, added
+
+
+def _apply(work: Path, m: dict, occurrence: int) -> bytes | None:
+    """Apply ``m``'s operator at ``occurrence`` to the scratch copy; the mutated bytes, or
+    None when that occurrence does not exist (the file is left unchanged either way)."""
+    target = work / m["module_path"]
+    source = target.read_bytes()
+    try:
+        done = subprocess.run(["cosmic-ray", "apply", m["module_path"], m["operator_name"],
+                               str(occurrence)], cwd=work, capture_output=True, check=False)
+        mutated = target.read_bytes()
+    finally:
+        target.write_bytes(source)
+    return mutated if done.returncode == 0 and mutated != source else None
+
+
+def _landing(source: bytes, mutated: bytes) -> tuple[int, list[str], list[str]]:
+    """Where a mutant changes the file (first changed line, 1-based) and the lines it
+    removes and adds, stripped."""
+    import difflib
+
+    before, after = source.decode().splitlines(), mutated.decode().splitlines()
+    diff = list(difflib.unified_diff(before, after, lineterm="", n=0))
+    first = next((i for i, (a, b) in enumerate(zip(before, after)) if a != b), len(before))
+    removed, added = _changed_lines("\n".join(diff))
+    return first + 1, removed, added
+
+
+def locate(work: Path, m: dict) -> tuple[bytes, int] | None:
+    """The session's mutant applied to today's code, found by its diff, and the line it
+    lands on. cosmic-ray numbers a mutant by its occurrence among the operator's sites,
+    so code added above it since the session shifts the number and ``apply`` would mutate
+    another site (the rechecks of align.py before stop 23 tested some survivors at the
+    wrong place). The recorded occurrence is tried first, then its neighbours outwards
+    until both ends run out of sites; None when no site makes the session's change (the
+    code is gone or was rewritten)."""
+    source = (work / m["module_path"]).read_bytes()
+    wanted = _changed_lines(m["diff"])
+    start, step, up, down = int(m["occurrence"]), 0, True, True
+    while up or down:
+        for occurrence, side in ((start + step, "up"), (start - step, "down")):
+            if (side == "up" and not up) or (side == "down" and not down) or (
+                    step == 0 and side == "down"):
+                continue
+            mutated = _apply(work, m, occurrence) if occurrence >= 0 else None
+            if mutated is None:  # past the last site on this side
+                if side == "up":
+                    up = False
+                else:
+                    down = False
+                continue
+            line, removed, added = _landing(source, mutated)
+            if not m["diff"] or (removed, added) == wanted:
+                return mutated, line
+        step += 1
+    return None
 
 
 def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = False) -> None:
@@ -507,15 +572,13 @@ def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = Fa
         for m in found:
             target = work / m["module_path"]
             source = target.read_bytes()
-            applied = subprocess.run(["cosmic-ray", "apply", m["module_path"],
-                                      m["operator_name"], str(m["occurrence"])], cwd=work,
-                                     capture_output=True, check=False)
-            unchanged = target.read_bytes() == source
+            found_here = locate(work, m)
+            if found_here is None:  # the code changed since the session
+                print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
+                continue
+            mutated, line = found_here
+            target.write_bytes(mutated)
             try:
-                if applied.returncode != 0 or unchanged:  # the code changed since the session
-                    # (cosmic-ray apply exits 0 without changing anything when it is gone)
-                    print(f"GONE     {m['operator_name']} #{m['occurrence']}", flush=True)
-                    continue
                 try:
                     proc = subprocess.run(cmd, cwd=work, capture_output=True, text=True,
                                           check=False, timeout=10 * TIMEOUT, env=env)
@@ -524,12 +587,14 @@ def recheck(module: str, sessions: Path, full: bool = False, timeouts: bool = Fa
                     code = "timeout"
             finally:
                 target.write_bytes(source)
-            _report(m, code, alive)
+            _report(m, code, alive, line)
     print(f"{module}: {len(found) - len(alive)} of {len(found)} survivors now killed")
 
 
-def _report(m: dict, code, alive: list) -> None:
-    line = m["start_pos"][0]
+def _report(m: dict, code, alive: list, line: int | None = None) -> None:
+    """One verdict line: the mutant, and today's line it was applied at (``line``; the
+    session's own line when not given)."""
+    line = m["start_pos"][0] if line is None else line
     src = (ROOT / m["module_path"]).read_text().splitlines()[line - 1].strip()
     # 1: a test failed, 2: collection failed (the mutant breaks an import);
     # 3-5 are pytest's own errors (a bad node id): never a kill
