@@ -146,8 +146,6 @@ def deconvolve_tiled(
         arr = arr.rechunk({2: -1})
     depth = {2: 0} if arr.ndim == 3 else {}
     reach = p.depth if overlap_px is None else int(overlap_px)
-    if method == "sparse" and overlap_px is None:
-        reach = max(arr.shape[:2])  # non-linear: tiles differ by ~0.05 at any overlap tried
     for axis in (0, 1):
         if reach >= arr.shape[axis]:  # the operator reaches across the frame: one tile
             arr = arr.rechunk({axis: -1})

@@ -7,11 +7,10 @@ import numpy as np
 from scipy import fft as sfft
 
 from pipeline.core import validate
-from pipeline.core.deconvolve.common import _WORKERS, _check_positive, _Domain, _frame_depth
+from pipeline.core.deconvolve.common import _WORKERS, _check_positive, _Domain
 from pipeline.core.deconvolve.wiener import (
     _laplacian_spectrum,
     _natural_prior_scale,
-    _wiener_transfer,
 )
 from pipeline.errors import InputError
 
@@ -104,8 +103,7 @@ def _plan_sparse(y, valid, k, sigma, *, alpha=0.8, weight=0.2, iterations=50, rh
     # MAP: |M(k*x - y)|^2 / (2 sigma^2) + sum |g / s|^alpha, s the per-direction gradient RMS
     s = np.sqrt(np.maximum(s2 / 2.0, 1e-24))
     mu = weight * sigma**2 / s**alpha
-    # reach of one x-step (its filter K*/(|K|^2 + |D|^2)), spread diffusively over the
-    # iterations; a heuristic (the w-step is not linear), see pipeline.tiling
-    step = _frame_depth(y, k, _wiener_transfer(1.0, "natural")) + max(k.shape) // 2
-    depth = min(int(np.ceil(step * np.sqrt(iterations))), max(y.shape[:2]))
+    # the whole frame: the method is not linear, and tiles with any overlap tried differed
+    # by ~0.05 (a tiled run needs an explicit overlap_px)
+    depth = max(y.shape[:2])
     return {"mu": mu, "alpha": alpha, "iterations": iterations, "rho": rho}, depth
