@@ -19,7 +19,7 @@ import pytest
 from pipeline.core import psf, simulate
 from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile
-from pipeline.core.scene import Scene, Surface
+from pipeline.core.scene import Camera, Scene, Surface
 
 planner = simulate.planner
 
@@ -313,3 +313,290 @@ def test_hat_error_is_the_interpolated_kernels_error_over_the_shifted_sub_steps(
     inner = near[(near >= 1 / 520.0) & (near <= 1 / 470.0)]
     got = planner._hat_error([g0, g1], inner, layers, [check], steps, cache, shape)
     assert got == pytest.approx(middle, rel=1e-9)
+
+
+# ----------------------------------------------------------------------------- _Gain
+def _gain_scene(rows, cols, depths, seed):
+    """A depth map drawing ``depths`` (mm) in a fixed shuffled order (every value at least
+    once), a texture with a non-zero mean, alpha 0.6 on a few pixels and 0 on two."""
+    rng = np.random.default_rng(seed)
+    radiance = 0.4 + rng.uniform(0.0, 1.0, (rows, cols, 2))
+    alpha = np.ones((rows, cols))
+    alpha[rng.integers(0, rows, 6), rng.integers(0, cols, 6)] = 0.6
+    alpha[0, 3] = alpha[rows - 2, cols - 1] = 0.0
+    covered = alpha > 0
+    n = int(covered.sum())
+    depth = np.full((rows, cols), depths[-1] + 50.0)  # uncovered: a depth not present
+    depth[covered] = rng.permutation(np.concatenate([depths, rng.choice(depths,
+                                                                          n - depths.size)]))
+    return Scene.from_depth(radiance, depth, alpha=alpha)
+
+
+def _brute_gain(scene, reps, profile, node_count):
+    """Mean-radiance error of hat layers by a per-pixel gather, written out here: pixel
+    ``p`` gathers ``sum_delta alpha(s) (K_hat_{D(s)}(delta) - K_{D(s)}(delta))`` over
+    sources ``s = p - delta`` (the scene mirrored beyond its border without repeating the
+    edge pixel), ``K_hat`` linear in D between neighbouring representatives (the end
+    ones beyond them), ``K`` the true kernel (over ``node_count`` depths: linear between
+    that many nodes uniform in D). Returns ``mean radiance / std * RMS(g)`` and the
+    depth of the worst pixel's largest share that is not a representative."""
+    surface = scene.surfaces[0]
+    alpha, inv = surface.alpha, 1.0 / surface.depth_mm
+    rows, cols = alpha.shape
+    seen = alpha > 0
+    radiance = surface.radiance.mean(axis=-1)[seen]
+    ratio = radiance.mean() / radiance.std()
+    depths = np.unique(inv[seen])
+
+    def kern(d):
+        return psf.integrated_psf(LENS, 1.0 / d, profile, model="pillbox")
+
+    h = max(kern(d).shape[0] for d in (depths[0], depths[-1], *reps)) // 2
+
+    def padded(d):
+        k = kern(d)
+        return np.pad(k, h - k.shape[0] // 2)
+
+    nodes = depths if depths.size <= node_count else np.linspace(depths[0], depths[-1],
+                                                                   node_count)
+    rep_k = np.array([padded(d) for d in reps])
+    node_k = np.array([padded(d) for d in nodes])
+    u_rep = np.interp(depths, reps, np.arange(len(reps)))  # fractional index, clamped
+    u_node = np.interp(depths, nodes, np.arange(nodes.size))
+
+    def blend(stack, u):
+        lo = np.minimum(np.floor(u).astype(int), len(stack) - 1)
+        hi = np.minimum(lo + 1, len(stack) - 1)
+        return (1 - (u - lo))[:, None, None] * stack[lo] + (u - lo)[:, None, None] * stack[hi]
+
+    error = blend(rep_k, u_rep) - blend(node_k, u_node)  # per depth, (2h+1)^2
+
+    def mirror(i, n):
+        i = np.abs(i)
+        return np.where(i > n - 1, 2 * (n - 1) - i, i)
+
+    g = np.zeros((rows, cols))
+    share = {}
+    worst = None
+    for y in range(rows):
+        for x in range(cols):
+            total, mine = 0.0, np.zeros(nodes.size)
+            for dy in range(-h, h + 1):
+                for dx in range(-h, h + 1):
+                    sy, sx = mirror(y - dy, rows), mirror(x - dx, cols)
+                    if alpha[sy, sx] == 0:
+                        continue
+                    k = int(np.searchsorted(depths, inv[sy, sx]))
+                    part = alpha[sy, sx] * error[k, h + dy, h + dx]
+                    total += part
+                    lo = min(int(np.floor(u_node[k])), nodes.size - 1)
+                    frac = u_node[k] - lo
+                    mine[lo] += (1 - frac) * part
+                    if frac:
+                        mine[lo + 1] += frac * part
+            g[y, x] = total
+            if worst is None or abs(total) > abs(g[worst]):
+                worst, share = (y, x), mine
+    share[np.isin(nodes, reps)] = 0
+    best = int(np.argmax(np.abs(share)))
+    return ratio * math.sqrt(np.mean(g**2)), (float(nodes[best]) if share[best] else None)
+
+
+@pytest.mark.parametrize(("count", "seed"), [(40, 1), (257, 2), (300, 3)])
+def test_gain_error_matches_a_per_pixel_gather(count, seed):
+    """``_Gain.error`` on a whole band (every pixel sampled) against ``_brute_gain``: 40
+    depths (each its own true kernel), exactly 257 (still each its own: not nodes, which
+    would interpolate), 300 (257 nodes uniform in D between the nearest and farthest),
+    spread unevenly over 560-630 mm, a sweep window focusing across them, three
+    representatives; and the ratio ``mean / std`` of the visible radiance."""
+    rng = np.random.default_rng(seed)
+    depths = np.sort(560.0 + 70.0 * rng.uniform(0.0, 1.0, count) ** 2)
+    rows, cols = (8, 6) if count == 40 else (16, 20)
+    scene = _gain_scene(rows, cols, depths, seed)
+    present = planner._present_inverse_depths(scene, LENS)
+    assert present.size == count
+    profile = Profile([0.0, 0.01], [12.78, 12.82])
+    reps = [float(present[count // 5]), float(present[count // 2]), float(present[-3])]
+    ends = [0.5 * (reps[0] + reps[1]), 0.5 * (reps[1] + reps[2]), float(present[-1])]
+    layers = tuple(simulate.Layer(lo, hi, r, 0)
+                   for lo, hi, r in zip([-math.inf, *ends[:-1]], ends, reps))
+    cache = planner._KernelCache(LENS, "pillbox", planner._Spectra(256))
+    half = max(cache.kernel(float(d), profile).shape[0] for d in present) // 2
+    gain = planner._Gain(scene, present, half)
+    seen = scene.surfaces[0].alpha > 0
+    visible = scene.surfaces[0].radiance.mean(axis=-1)[seen]
+    assert gain.ratio == pytest.approx(visible.mean() / visible.std(), rel=1e-12)
+    got, depth = gain.error(0, rows, layers, profile=profile, cache=cache, near=present)
+    want, want_depth = _brute_gain(scene, reps, profile, 257)
+    assert want > 0
+    assert got == pytest.approx(want, rel=1e-9)
+    assert depth == want_depth
+
+
+# ----------------------------------------------------------------------------- edges
+def _plane(shape, depth, box=None, value=0.5):
+    """A plane at ``depth`` mm covering ``box`` (rows, cols slices; default all)."""
+    alpha = np.zeros(shape)
+    alpha[box if box is not None else (slice(None), slice(None))] = 1.0
+    rng = np.random.default_rng(int(depth))
+    return (value + 0.3 * rng.uniform(0.0, 1.0, shape), alpha, float(depth))
+
+
+def test_edges_of_a_block_over_a_plane_worked_out_by_hand():
+    """A 4x5 block at 400 mm over a plane at 410 mm (10x12 px): inverse depths differ by
+    ``1/400 - 1/410 = 6.1e-5`` per mm. With ``k`` making that 0.4 px no pixel is an edge
+    (both planes are flat: no jump within a surface); with 0.8 px the block's 14 border
+    pixels are (its outline over the far plane), the largest jump 0.8. A block whose
+    outline lies where the far plane has no pixel (alpha 0) has no edge."""
+    shape, box = (10, 12), (slice(2, 6), slice(3, 8))
+    diff = 1 / 400.0 - 1 / 410.0
+    scene = Scene.from_planes([_plane(shape, 400.0, box), _plane(shape, 410.0)])
+    mask, worst = planner._edges(scene, 0.4 / diff)
+    assert not mask.any() and worst == 0.0
+    mask, worst = planner._edges(scene, 0.8 / diff)
+    ring = np.zeros(shape, bool)
+    ring[box] = True
+    ring[3:5, 4:7] = False
+    assert ring.sum() == 14
+    np.testing.assert_array_equal(mask, ring)
+    assert worst == pytest.approx(0.8, rel=1e-12)
+    # the far plane covers only columns 0-5; the block sits on columns 7-10
+    scene = Scene.from_planes([_plane(shape, 400.0, (slice(2, 6), slice(7, 11))),
+                               _plane(shape, 410.0, (slice(None), slice(0, 6)))])
+    mask, worst = planner._edges(scene, 0.8 / diff)
+    assert not mask.any() and worst == 0.0
+
+
+def test_a_one_pixel_occluder_turns_occlusion_on():
+    """One pixel at 300 mm in front of a plane at 700 mm is one depth-edge pixel (its own
+    outline), so the plan composites with occlusion."""
+    shape = (9, 9)
+    scene = Scene.from_planes([_plane(shape, 300.0, (slice(4, 5), slice(4, 5))),
+                               _plane(shape, 700.0)])
+    pl = simulate.plan(scene, Camera.static(LENS, 12.78, 0.01), tolerance=1e-2)
+    assert pl.occlusion
+    occlusion = next(e for e in pl.effects if e.name == "occlusion")
+    assert occlusion.applied and occlusion.reason.startswith("1 px on depth edges")
+
+
+def _occlusion(scene, profile):
+    band = planner.Band(0, scene.shape[0], profile, (), ())
+    return planner._occlusion_error(scene, Camera(LENS, profile), [band],
+                                    float(profile.image_distances_mm[0]))
+
+
+def test_occlusion_error_is_zero_below_half_a_pixel_of_blur_difference():
+    """Near 500 mm over far 501 mm: ``k (1/500 - 1/501)`` with ``k = a p / (2 pitch)`` =
+    8.93 x 12.7 / 0.04 x 4.0e-6 = 0.011 px, below 0.5: no error is counted (though both
+    are out of focus). Near 400 over far 600 (k x 8.3e-4 = 2.4 px) is counted."""
+    shape = (12, 16)
+    profile = _static(12.7)
+    box = (slice(None), slice(0, 8))
+    scene = Scene.from_planes([_plane(shape, 500.0, box), _plane(shape, 501.0, value=0.2)])
+    assert _occlusion(scene, profile) == 0.0
+    scene = Scene.from_planes([_plane(shape, 400.0, box), _plane(shape, 600.0, value=0.2)])
+    assert _occlusion(scene, profile) > 0.0
+
+
+def test_occlusion_error_of_a_mirrored_scene_is_the_same():
+    """The estimate traces a straight edge with the near side left, mirroring the
+    textures when the near surface lies right of its silhouette: a two-column strip at
+    the left border (silhouette column 1; two columns of it left of column 1 inclusive,
+    one from column 1 on) and the left-right mirror image of the whole scene give the
+    same estimate."""
+    shape = (12, 16)
+    profile = _static(12.7)
+    near = _plane(shape, 400.0, (slice(None), slice(0, 2)))
+    far = _plane(shape, 600.0, value=0.2)
+    scene = Scene.from_planes([near, far])
+    mirrored = Scene.from_planes([(rad[:, ::-1], alpha[:, ::-1], depth)
+                                  for rad, alpha, depth in (near, far)])
+    got = _occlusion(scene, profile)
+    assert got > 0
+    assert _occlusion(mirrored, profile) == pytest.approx(got, rel=1e-12)
+
+
+# ----------------------------------------------------------------------------- the plan's sums
+def test_plan_sums_the_bands_estimates_as_row_weighted_rms(monkeypatch):
+    """The plan's estimates from its bands' (patched here to known values per band): the
+    rolling-shutter rows' is the partition's error times the finite-scene factor ``F``;
+    the depth layers' ``sqrt(sum_b n_b ((F h_b)^2 + g_b^2) / rows)`` (``h_b`` the hat
+    error, ``g_b`` the gain error, ``n_b`` the band's rows); the magnification's ``F
+    sqrt(sum_b n_b m_b^2 / rows)``; ``F`` the ratio of mean inverse powers summed here.
+    A rolling sweep of a 24x20 px plane gives bands of unequal rows (7, 9, 7, 1 today)."""
+    rolling = dataclasses.replace(LENS, shutter="rolling", line_time_us=500.0)
+    rng = np.random.default_rng(5)
+    scene = Scene.from_depth(rng.uniform(0.0, 1.0, (24, 20)), np.full((24, 20), 700.0))
+    cam = Camera(rolling, Profile([0.0, 0.05], [12.6, 12.65]), row_exposure_s=0.01)
+    hat = iter([3e-3, 1e-3, 4e-3, 1.5e-3, 5e-3, 9e-3, 2e-3, 6e-3] * 4)
+    gains = iter([2e-3, 7e-3, 1e-3, 8e-3, 2.5e-3, 3e-3, 4e-3, 1e-3] * 4)
+    mags = iter([5e-4, 2e-3, 1e-3, 3e-3, 4e-4, 6e-4, 7e-4, 8e-4] * 4)
+    seen = {"h": [], "g": [], "m": [], "band": []}
+    layers, magnification, partition = planner._layers, planner._magnification, \
+        planner._partition
+
+    def fake_layers(*args, **kwargs):
+        out = layers(*args, **kwargs)
+        seen["g"].append(next(gains))
+        return (*out[:3], seen["g"][-1])
+
+    def fake_hat_error(*args):
+        seen["h"].append(next(hat))
+        return seen["h"][-1]
+
+    def fake_magnification(*args, **kwargs):
+        out = magnification(*args, **kwargs)
+        seen["m"].append(next(mags))
+        return (out[0], seen["m"][-1], *out[2:])
+
+    def fake_partition(*args, **kwargs):
+        out = partition(*args, **kwargs)
+        if kwargs.get("integer"):
+            seen["band"].append(out[1])
+        return out
+
+    monkeypatch.setattr(planner, "_layers", fake_layers)
+    monkeypatch.setattr(planner, "_hat_error", fake_hat_error)
+    monkeypatch.setattr(planner, "_magnification", fake_magnification)
+    monkeypatch.setattr(planner, "_partition", fake_partition)
+    pl = simulate.plan(scene, cam, tolerance=1e-2)
+    assert not pl.occlusion
+    rows = np.array([b.row_stop - b.row_start for b in pl.bands])
+    assert len(set(rows)) > 1 and rows.sum() == 24 and len(seen["h"]) == len(rows)
+    f = math.sqrt(_mean_inverse_power(256, 256) / _mean_inverse_power(24, 20))
+    h, g, m = (np.array(seen[k]) for k in "hgm")
+    effects = {e.name: e.estimated_error for e in pl.effects}
+    assert effects["rolling-shutter rows"] == pytest.approx(f * seen["band"][0], rel=1e-12)
+    assert effects["depth layers"] == pytest.approx(
+        math.sqrt(np.sum(rows * ((f * h) ** 2 + g**2)) / 24), rel=1e-12)
+    assert effects["magnification"] == pytest.approx(
+        f * math.sqrt(np.sum(rows * m**2) / 24), rel=1e-12)
+
+
+def test_kernel_cache_scales_the_pitch_of_a_sub_step_either_way():
+    """The kernel of a sub-step scaled by ``s`` is the blur of Eq. 2 over ``s`` times the
+    pitch, for ``s`` below and above 1: for a plane at 500 mm and the detector at 12.9
+    mm, ``b = a |v - p| / v / (0.02 s)`` px with ``a = 12.5 / 1.4`` and ``v = 12.5 x 500
+    / 487.5``, rasterised here as a pillbox."""
+    cache = planner._KernelCache(LENS, "pillbox", None)
+    a, v = 12.5 / 1.4, 12.5 * 500.0 / 487.5
+    for s in (0.9, 1.0, 1.1):
+        b = a * abs(v - 12.9) / v / (0.02 * s)
+        want = psf.raster_pillbox(b, psf.kernel_size(b) // 2)
+        got = cache.kernel(1 / 500.0, _static(12.9), s)
+        np.testing.assert_allclose(got, want / want.sum(), rtol=0, atol=1e-12)
+
+
+def test_plan_reports_the_corner_displacement_and_its_bands_are_frozen():
+    """A static frame at 12.9 mm seen with ``p_ref = 12.6`` on 41x50 px moves its corner
+    by ``0.5 hypot(40, 49) x 0.3 / 12.6`` = 0.7533 px (worked out by hand); bands are
+    immutable records."""
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=50,
+                height_px=41)
+    scene = Scene.from_depth(np.random.default_rng(0).uniform(size=(41, 50)),
+                             np.full((41, 50), 600.0))
+    pl = simulate.plan(scene, Camera.static(lens, 12.9, 0.01, reference_image_distance_mm=12.6))
+    reason = next(e.reason for e in pl.effects if e.name == "magnification")
+    assert "image moves up to 0.753 px at the corner" in reason
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        pl.bands[0].row_start = 1

@@ -369,6 +369,10 @@ for _m in ("core/simulate/render.py", "core/simulate/composite.py", "core/simula
     MODULES[_m] = _SIM
     FULL[_m] = [*_SIM, _SR, "tests/test_applications.py",
                 "tests/test_cli_flags.py::test_render_reports_progress_per_step"]
+# helper mut-planner: the planner's internals against independent computations (~4 s) first
+MODULES["core/simulate/planner.py"] = ["tests/test_planner_units.py", *_SIM]
+FULL["core/simulate/planner.py"] = ["tests/test_planner_units.py",
+                                    *FULL["core/simulate/planner.py"]]
 MODULES["core/deconvolve/gcv.py"] = ["tests/test_gcv_mutation_kills.py", *_GCV]
 FULL["core/deconvolve/gcv.py"] = [*MODULES["core/deconvolve/gcv.py"], "tests/test_references.py"]
 # ---- end of mutW's selections ----------------------------------------------------------------
