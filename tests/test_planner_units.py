@@ -600,3 +600,55 @@ def test_plan_reports_the_corner_displacement_and_its_bands_are_frozen():
     assert "image moves up to 0.753 px at the corner" in reason
     with pytest.raises(dataclasses.FrozenInstanceError):
         pl.bands[0].row_start = 1
+
+
+@pytest.mark.parametrize("depth", [10.0, 12.5])
+def test_a_scene_at_or_inside_the_focal_length_is_refused_by_the_planner(depth):
+    """A pixel at or nearer than f (no real image) is refused with the planner's message,
+    naming the depth and f (not a later failure of the optics)."""
+    depths = np.full((6, 8), 600.0)
+    depths[2, 5] = depth
+    scene = Scene.from_depth(np.ones((6, 8)), depths)
+    with pytest.raises(planner.InputError,
+                       match=rf"scene depth {depth:g} mm is not beyond the focal length 12.5"):
+        simulate.plan(scene, Camera.static(LENS, 12.7, 0.01))
+
+
+def test_edge_cells_of_a_sweep_need_the_budget_for_two_time_cells(monkeypatch):
+    """Sub-aperture compositing of a moving detector starts by comparing 1 and 2 time
+    cells: it is planned only when twice the work (sub-steps x aperture cells x layers x
+    px of the box 2 kernel half-widths around the edge pixels, counted here) fits the
+    budget; 1.5x the work keeps 'over' compositing (``None``), 2.5x plans 1 cell."""
+    shape = (12, 16)
+    scene = Scene.from_planes([_plane(shape, 400.0, (slice(None), slice(0, 8))),
+                               _plane(shape, 600.0, value=0.2)])
+    cam = Camera(LENS, Profile([0.0, 0.01], [12.75, 12.85]))
+    pl = simulate.plan(scene, cam, tolerance=1e-1, occlusion=True)
+    (band,) = pl.bands
+    cache = planner._KernelCache(LENS, pl.model, planner._Spectra(256))
+    a_p = LENS.aperture_mm * 12.85 / LENS.pixel_pitch_mm
+    mask, _ = planner._edges(scene, 0.5 * a_p)
+    cells = []
+    aperture_cells = planner.edge_model.aperture_cells
+
+    def record(widest):
+        out = aperture_cells(widest)
+        cells.append(len(out[0]))
+        return out
+
+    monkeypatch.setattr(planner.edge_model, "aperture_cells", record)
+    half = max(cache.kernel(layer.inv_rep, s.profile, s.scale).shape[0] // 2
+               for layer in band.layers for s in band.steps)
+    rr, cc = np.nonzero(mask)
+    box = ((min(rr.max() + 2 * half, shape[0]) - max(rr.min() - 2 * half, 0))
+           * (min(cc.max() + 2 * half, shape[1]) - max(cc.min() - 2 * half, 0)))
+    args = (scene, band, cache, pl.edge_inv_depth, mask, 1e-9)
+    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 0.0)
+    assert planner._edge_cells(*args) is None and len(cells) == 1  # counted, then refused
+    work = len(band.steps) * cells[0] * len(band.layers) * box
+    assert mask.any() and work > 0
+    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 1.5 * work)
+    assert planner._edge_cells(*args) is None
+    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 2.5 * work)
+    n, est = planner._edge_cells(*args)
+    assert n == 1 and est > 0
