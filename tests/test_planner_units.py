@@ -142,10 +142,11 @@ def simulate_surface(depth):
 
 def test_groups_merge_overlapping_and_touching_depth_ranges_only():
     """Surfaces in inverse depth (1/m): A 1-2, B 3-4, C 5-6, D 5.5-7 (overlaps C), E from
-    D's farthest depth to 7.5 (touches D: the same depth value), F 9-9.5, given out of
-    order. By hand: groups {A}, {B}, {C, D, E}, {F}; the present values split so."""
+    D's farthest depth to 7.5 (touches D: the same depth value), F 9-9.5, G 9.1-9.3
+    (inside F, the last span), given out of order. By hand: groups {A}, {B}, {C, D, E},
+    {F, G}; the present values split so."""
     ranges = {"A": (1e-3, 2e-3), "B": (3e-3, 4e-3), "C": (5e-3, 6e-3), "D": (5.5e-3, 7e-3),
-              "E": (7e-3, 7.5e-3), "F": (9e-3, 9.5e-3)}
+              "E": (7e-3, 7.5e-3), "F": (9e-3, 9.5e-3), "G": (9.1e-3, 9.3e-3)}
     surfaces = {k: simulate_surface(1.0 / np.linspace(lo, hi, 6)[None, :].repeat(4, 0))
                 for k, (lo, hi) in ranges.items()}
     # E's nearest value is D's: the very same float depth, so the spans touch exactly
@@ -153,7 +154,7 @@ def test_groups_merge_overlapping_and_touching_depth_ranges_only():
     e_depth = surfaces["E"].depth_mm.copy()
     e_depth[:, 0] = d_depth[0, -1]
     surfaces["E"] = simulate_surface(e_depth)
-    order = ["F", "C", "A", "E", "B", "D"]
+    order = ["F", "C", "G", "A", "E", "B", "D"]
     scene = Scene(tuple(surfaces[k] for k in order), channels_axis=False)
     present = np.unique(np.concatenate([1.0 / s.depth_mm.ravel() for s in scene.surfaces]))
     groups = planner._groups(scene, present)
@@ -162,7 +163,7 @@ def test_groups_merge_overlapping_and_touching_depth_ranges_only():
         return np.unique(np.concatenate([1.0 / surfaces[k].depth_mm.ravel() for k in names]))
 
     assert len(groups) == 4
-    for got, names in zip(groups, (("A",), ("B",), ("C", "D", "E"), ("F",))):
+    for got, names in zip(groups, (("A",), ("B",), ("C", "D", "E"), ("F", "G"))):
         np.testing.assert_array_equal(got, values(*names))
 
 
@@ -212,7 +213,7 @@ def test_hat_split_checks_the_middle_and_the_samples_inside_each_interval_only()
     samples strictly inside it, not those nearest the samples at or beyond its ends: a
     blend error only at 0.05 (scene values 0.05, 0.5, 0.75 between representatives 0 and
     1) is not seen with samples 0, 1 (the check is 0.5), and is not a representative;
-    a spike at 0.75 is seen with a sample at 0.8 (nearest 0.75) and becomes one."""
+    nor is one at 0.75; that is seen with a sample at 0.8 (nearest 0.75) and becomes one."""
     parts = [(1.0, 0.0), (2.0, 1.0)]
     present = np.array([0.0, 0.05, 0.5, 0.75, 1.0])
 
@@ -221,6 +222,9 @@ def test_hat_split_checks_the_middle_and_the_samples_inside_each_interval_only()
 
     split, checks = planner._hat_split(parts, np.array([0.0, 1.0]), present, spike_at(0.05),
                                        0.5)
+    assert split == parts and checks == [(0.5, 0.0, 1.0)]
+    split, checks = planner._hat_split(parts, np.array([0.0, 1.0]), present, spike_at(0.75),
+                                       0.5)  # 0.75 is nearest the end sample 1: not seen
     assert split == parts and checks == [(0.5, 0.0, 1.0)]
     split, checks = planner._hat_split(parts, np.array([0.0, 0.8, 1.0]), present,
                                        spike_at(0.75), 0.5)
@@ -652,3 +656,123 @@ def test_edge_cells_of_a_sweep_need_the_budget_for_two_time_cells(monkeypatch):
     monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 2.5 * work)
     n, est = planner._edge_cells(*args)
     assert n == 1 and est > 0
+
+
+def test_layers_measure_kernels_and_hat_blends_with_the_metric(monkeypatch):
+    """The distances ``_layers`` hands to the partition and the blend errors it hands to
+    the hat split, against the full-plane metric of ``K(a) - K(b)`` and of ``K(d) - (1 -
+    t) K(a) - t K(b)``, ``t = (d - a) / (b - a)``, computed here (at 450, 500 and 570 mm,
+    a sweep window focused between them)."""
+    profile = Profile([0.0, 0.01], [12.78, 12.84])
+    present = np.sort(1.0 / np.array([570.0, 540.0, 500.0, 470.0, 450.0]))
+    cache = planner._KernelCache(LENS, "pillbox", planner._Spectra(256))
+    got = {}
+    partition, hat_split = planner._partition, planner._hat_split
+
+    def spy_partition(present, lo, hi, dist, tol, **kw):
+        got["dist"] = dist
+        return partition(present, lo, hi, dist, tol, **kw)
+
+    def spy_hat_split(parts, samples, present, blend, tol, forced=()):
+        got["blend"] = blend
+        return hat_split(parts, samples, present, blend, tol, forced)
+
+    monkeypatch.setattr(planner, "_partition", spy_partition)
+    monkeypatch.setattr(planner, "_hat_split", spy_hat_split)
+    planner._layers([present], present, profile, cache, 1e-2, hat=True)
+
+    def k(inv):
+        return _fft(psf.integrated_psf(LENS, 1.0 / inv, profile, model="pillbox"), 256)
+
+    d, a, b = 1 / 500.0, 1 / 570.0, 1 / 450.0
+    t = (d - a) / (b - a)
+    assert got["dist"](a, b) == pytest.approx(_full_plane_error(k(a) - k(b)), rel=1e-9)
+    want = _full_plane_error(k(d) - (1 - t) * k(a) - t * k(b))
+    assert want > 1e-3
+    assert got["blend"](d, a, b) == pytest.approx(want, rel=1e-9)
+
+
+def test_the_occlusion_estimate_follows_the_whole_window():
+    """A sweep given with a knot in the middle of a straight segment (three collinear
+    knots) is the same motion: the same occlusion estimate as with two knots."""
+    shape = (12, 16)
+    scene = Scene.from_planes([_plane(shape, 400.0, (slice(None), slice(0, 8))),
+                               _plane(shape, 600.0, value=0.2)])
+    two = Profile([0.0, 0.01], [12.70, 12.90])
+    three = Profile([0.0, 0.0025, 0.01], [12.70, 12.75, 12.90])
+    got = _occlusion(scene, two)
+    assert got > 0
+    assert _occlusion(scene, three) == pytest.approx(got, rel=1e-9)
+
+
+def test_plan_records_are_frozen_and_a_plan_without_edge_cells_renders_over():
+    """Layers, sub-steps, bands, effects and plans are immutable; a ``Plan`` built
+    without ``edge_time_cells`` renders as one with 0 (no sub-aperture compositing)."""
+    shape = (12, 16)
+    scene = Scene.from_planes([_plane(shape, 400.0, (slice(None), slice(0, 8))),
+                               _plane(shape, 600.0, value=0.2)])
+    cam = Camera(LENS, Profile([0.0, 0.01], [12.75, 12.85]))
+    pl = simulate.plan(scene, cam, tolerance=1e-1, occlusion=True, magnification_steps=2)
+    band = pl.bands[0]
+    for record, name in ((band.layers[0], "inv_rep"), (band.steps[0], "scale"),
+                         (band, "row_start"), (pl.effects[0], "applied"), (pl, "tolerance")):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            setattr(record, name, getattr(record, name))
+    fields = {f.name: getattr(pl, f.name) for f in dataclasses.fields(pl)
+              if f.name != "edge_time_cells"}
+    bare = planner.Plan(**fields)
+    over = dataclasses.replace(pl, edge_time_cells=0)
+    np.testing.assert_array_equal(simulate.render(scene, cam, plan_=bare),
+                                  simulate.render(scene, cam, plan_=over))
+
+
+def test_lru_counts_bytes_from_zero_after_clear():
+    """A 16-byte ``_Lru`` keeps two 8-byte arrays (16 is not over 16), before and after
+    ``clear``; a third drops the least recently used (the first, unless it was read)."""
+    lru = planner._Lru(16)
+    for _ in range(2):
+        lru["a"], lru["b"] = np.zeros(1), np.ones(1)
+        assert list(lru) == ["a", "b"] and lru.nbytes == 16
+        lru.clear()
+        assert lru.nbytes == 0 and not lru
+    lru["a"], lru["b"] = np.zeros(1), np.ones(1)
+    assert "a" in lru  # read: now the most recent
+    lru["c"] = np.full(1, 2.0)
+    assert list(lru) == ["a", "c"] and lru.nbytes == 16
+
+
+def test_gain_of_a_scene_without_contrast_is_zero():
+    """A uniform radiance (RMS contrast 0, the unit of the estimate) has no gain error to
+    report and names no depth, whatever its depths: also at 0.7, whose ``np.std`` is
+    1.1e-16 by rounding (the ratio was 6e15)."""
+    depth = np.linspace(560.0, 630.0, 48).reshape(6, 8)
+    scene = Scene.from_depth(np.full((6, 8), 0.7), depth)
+    present = planner._present_inverse_depths(scene, LENS)
+    profile = Profile([0.0, 0.01], [12.78, 12.82])
+    cache = planner._KernelCache(LENS, "pillbox", planner._Spectra(256))
+    gain = planner._Gain(scene, present, 5)
+    layers = (simulate.Layer(-math.inf, float(present[-1]), float(present[10]), 0),)
+    assert gain.ratio == 0.0
+    assert gain.error(0, 6, layers, profile=profile, cache=cache, near=present) == (0.0, None)
+
+
+def test_a_uniform_scene_is_planned_as_one_without_contrast():
+    """Plans of a uniform radiance do not depend on its level: at 0.7 (whose ``np.std``
+    is 1.1e-16 by rounding) a depth ramp gets the layers of radiance 0.5 (whose std is
+    exactly 0), not one per depth (192, the gain ratio was 6e15); a plane over a plane
+    gets the occlusion estimate 0 and no edge time cells (it was 13.7, with 64 cells)."""
+    depth = np.linspace(560.0, 630.0, 192).reshape(12, 16)
+    alpha = np.zeros((12, 16))
+    alpha[:, :8] = 1.0
+    sweep = Camera(LENS, Profile([0.0, 0.01], [12.75, 12.85]))
+
+    def plans(v):
+        uniform = np.full((12, 16), v)
+        ramp = simulate.plan(Scene.from_depth(uniform, depth), sweep, tolerance=1e-2)
+        planes = Scene.from_planes([(uniform, alpha, 400.0), (uniform, None, 600.0)])
+        return ramp, simulate.plan(planes, sweep, tolerance=1e-2)
+
+    (ramp, planes), (ramp_half, planes_half) = plans(0.7), plans(0.5)
+    assert ramp.layer_count == ramp_half.layer_count < 30
+    assert planes.occlusion and planes.edge_time_cells == planes_half.edge_time_cells == 0
+    assert next(e for e in planes.effects if e.name == "occlusion").estimated_error == 0.0
