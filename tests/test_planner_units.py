@@ -618,44 +618,49 @@ def test_a_scene_at_or_inside_the_focal_length_is_refused_by_the_planner(depth):
         simulate.plan(scene, Camera.static(LENS, 12.7, 0.01))
 
 
-def test_edge_cells_of_a_sweep_need_the_budget_for_two_time_cells(monkeypatch):
-    """Sub-aperture compositing of a moving detector starts by comparing 1 and 2 time
-    cells: it is planned only when twice the work (sub-steps x aperture cells x layers x
-    px of the box 2 kernel half-widths around the edge pixels, counted here) fits the
-    budget; 1.5x the work keeps 'over' compositing (``None``), 2.5x plans 1 cell."""
-    shape = (12, 16)
-    scene = Scene.from_planes([_plane(shape, 400.0, (slice(None), slice(0, 8))),
-                               _plane(shape, 600.0, value=0.2)])
-    cam = Camera(LENS, Profile([0.0, 0.01], [12.75, 12.85]))
-    pl = simulate.plan(scene, cam, tolerance=1e-1, occlusion=True)
-    (band,) = pl.bands
-    cache = planner._KernelCache(LENS, pl.model, planner._Spectra(256))
-    a_p = LENS.aperture_mm * 12.85 / LENS.pixel_pitch_mm
-    mask, _ = planner._edges(scene, 0.5 * a_p)
-    cells = []
-    aperture_cells = planner.edge_model.aperture_cells
+def test_edge_cells_need_the_budget_for_their_work(monkeypatch):
+    """Sub-aperture compositing is planned only when its work fits the budget: sub-steps
+    x aperture cells x layers x px of the box ``[r0 - 2h, r1 + 2h) x [c0 - 2h, c1 + 2h)``
+    around the edge pixels (``h`` the widest kernel's half-size), clipped to the image,
+    counted here; a moving detector starts by comparing 1 and 2 time cells, so it needs
+    twice the work. A block on rows 12-19 at the left border of a 36x28 px plane (the box
+    is clipped on the left only): at the budget exactly the cells are planned, 1 below
+    it they are not (``None``)."""
+    shape = (36, 28)
+    box_rc = (slice(12, 20), slice(0, 8))
+    scene = Scene.from_planes([_plane(shape, 400.0, box_rc), _plane(shape, 600.0, value=0.2)])
+    for cam, factor in ((Camera.static(LENS, 12.8, 0.01), 1),
+                        (Camera(LENS, Profile([0.0, 0.01], [12.75, 12.85])), 2)):
+        pl = simulate.plan(scene, cam, tolerance=1e-1, occlusion=True)
+        (band,) = pl.bands
+        cache = planner._KernelCache(LENS, pl.model, planner._Spectra(256))
+        a_p = LENS.aperture_mm * float(cam.motion.image_distances_mm.max()) / 0.02
+        mask, _ = planner._edges(scene, 0.5 * a_p)
+        rr, cc = np.nonzero(mask)
+        assert (rr.min(), rr.max(), cc.min(), cc.max()) == (12, 19, 0, 7)
+        cells = []
+        aperture_cells = planner.edge_model.aperture_cells
 
-    def record(widest):
-        out = aperture_cells(widest)
-        cells.append(len(out[0]))
-        return out
+        def record(widest, aperture_cells=aperture_cells, cells=cells):
+            out = aperture_cells(widest)
+            cells.append(len(out[0]))
+            return out
 
-    monkeypatch.setattr(planner.edge_model, "aperture_cells", record)
-    half = max(cache.kernel(layer.inv_rep, s.profile, s.scale).shape[0] // 2
-               for layer in band.layers for s in band.steps)
-    rr, cc = np.nonzero(mask)
-    box = ((min(rr.max() + 2 * half, shape[0]) - max(rr.min() - 2 * half, 0))
-           * (min(cc.max() + 2 * half, shape[1]) - max(cc.min() - 2 * half, 0)))
-    args = (scene, band, cache, pl.edge_inv_depth, mask, 1e-9)
-    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 0.0)
-    assert planner._edge_cells(*args) is None and len(cells) == 1  # counted, then refused
-    work = len(band.steps) * cells[0] * len(band.layers) * box
-    assert mask.any() and work > 0
-    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 1.5 * work)
-    assert planner._edge_cells(*args) is None
-    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 2.5 * work)
-    n, est = planner._edge_cells(*args)
-    assert n == 1 and est > 0
+        monkeypatch.setattr(planner.edge_model, "aperture_cells", record)
+        h = max(cache.kernel(layer.inv_rep, s.profile, s.scale).shape[0] // 2
+                for layer in band.layers for s in band.steps)
+        assert 12 - 2 * h > 0 and 19 + 2 * h < 36 and 7 + 2 * h < 28
+        box = (19 + 2 * h - (12 - 2 * h)) * (7 + 2 * h - 0)
+        args = (scene, band, cache, pl.edge_inv_depth, mask, 1e-9)
+        monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 0.0)
+        assert planner._edge_cells(*args) is None and len(cells) == 1  # counted, refused
+        work = factor * len(band.steps) * cells[0] * len(band.layers) * box
+        monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", work - 1)
+        assert planner._edge_cells(*args) is None
+        monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", work)
+        n, est = planner._edge_cells(*args)
+        assert n == 1 and (est > 0) == (factor == 2)
+        monkeypatch.setattr(planner.edge_model, "aperture_cells", aperture_cells)
 
 
 def test_layers_measure_kernels_and_hat_blends_with_the_metric(monkeypatch):
