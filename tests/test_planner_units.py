@@ -563,6 +563,13 @@ def test_plan_sums_the_bands_estimates_as_row_weighted_rms(monkeypatch):
     monkeypatch.setattr(planner, "_hat_error", fake_hat_error)
     monkeypatch.setattr(planner, "_magnification", fake_magnification)
     monkeypatch.setattr(planner, "_partition", fake_partition)
+    near, near_rows = planner._near, []
+
+    def spy_near(scene, q0, q1):
+        near_rows.append((q0, q1))
+        return near(scene, q0, q1)
+
+    monkeypatch.setattr(planner, "_near", spy_near)
     pl = simulate.plan(scene, cam, tolerance=1e-2)
     assert not pl.occlusion
     rows = np.array([b.row_stop - b.row_start for b in pl.bands])
@@ -571,6 +578,13 @@ def test_plan_sums_the_bands_estimates_as_row_weighted_rms(monkeypatch):
     h, g, m = (np.array(seen[k]) for k in "hgm")
     effects = {e.name: e.estimated_error for e in pl.effects}
     assert effects["rolling-shutter rows"] == pytest.approx(f * seen["band"][0], rel=1e-12)
+    rolling_effect = next(e for e in pl.effects if e.name == "rolling-shutter rows")
+    assert rolling_effect.applied and rolling_effect.reason.startswith(f"{len(rows)} bands")
+    # the rows that reach a band: the widest kernel's half-size plus the largest shift
+    # 0.5 hypot(24, 20) |p / p_ref - 1| (p_ref = 12.625, p from 12.6 to 12.65), + 1
+    blur = max(LENS.blur_px(F * u / (u - F), p) for u in (700.0,) for p in (12.6, 12.65))
+    reach = psf.kernel_size(blur) // 2 + math.ceil(0.5 * math.hypot(24, 20) * 0.025 / 12.625) + 1
+    assert near_rows == [(max(0, b.row_start - reach), b.row_stop + reach) for b in pl.bands]
     assert effects["depth layers"] == pytest.approx(
         math.sqrt(np.sum(rows * ((f * h) ** 2 + g**2)) / 24), rel=1e-12)
     assert effects["magnification"] == pytest.approx(
@@ -661,6 +675,12 @@ def test_edge_cells_need_the_budget_for_their_work(monkeypatch):
         n, est = planner._edge_cells(*args)
         assert n == 1 and (est > 0) == (factor == 2)
         monkeypatch.setattr(planner.edge_model, "aperture_cells", aperture_cells)
+    # beyond the budget the plan keeps 'over' compositing and says so
+    monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 0.0)
+    pl = simulate.plan(scene, cam, tolerance=1e-3, occlusion=True)
+    occlusion = next(e for e in pl.effects if e.name == "occlusion")
+    assert pl.edge_time_cells == 0 and occlusion.estimated_error > 1e-3
+    assert occlusion.reason.endswith(": partial occlusion at the silhouettes is not modelled")
 
 
 def test_layers_measure_kernels_and_hat_blends_with_the_metric(monkeypatch):
@@ -779,5 +799,31 @@ def test_a_uniform_scene_is_planned_as_one_without_contrast():
 
     (ramp, planes), (ramp_half, planes_half) = plans(0.7), plans(0.5)
     assert ramp.layer_count == ramp_half.layer_count < 30
+    layers_effect = next(e for e in ramp.effects if e.name == "depth layers")
+    assert layers_effect.applied
+    assert layers_effect.reason.startswith(f"{ramp.layer_count} layers over 560-630 mm")
     assert planes.occlusion and planes.edge_time_cells == planes_half.edge_time_cells == 0
     assert next(e for e in planes.effects if e.name == "occlusion").estimated_error == 0.0
+
+
+def test_visible_is_the_nearest_covering_surface_worked_out_by_hand():
+    """``_visible`` on three planes given far, near, middle (3x4 px, two channels of the
+    value -+ 0.1): 900 mm on columns 0-2 (0.1), 300 mm on column 0 (0.9), 500 mm on
+    columns 0-1 (0.5; alpha 0.5 on row 2, still covering): per pixel the channel mean and
+    the inverse depth of the nearest surface with alpha > 0; column 3 has none (radiance
+    0, NaN)."""
+    def plane(value, cols, depth, alpha_rows=slice(None), alpha_value=1.0):
+        alpha = np.zeros((3, 4))
+        alpha[:, cols] = 1.0
+        alpha[alpha_rows, cols] = alpha_value
+        rad = np.stack([np.full((3, 4), value - 0.1), np.full((3, 4), value + 0.1)], axis=2)
+        return rad, alpha, depth
+
+    far = plane(0.1, slice(0, 3), 900.0)
+    near = plane(0.9, slice(0, 1), 300.0)
+    middle = plane(0.5, slice(0, 2), 500.0, slice(2, 3), 0.5)
+    radiance, inv = planner._visible(Scene.from_planes([far, near, middle]))
+    want_r = np.array([[0.9, 0.5, 0.1, 0.0]] * 3)
+    want_i = np.array([[1 / 300, 1 / 500, 1 / 900, np.nan]] * 3)
+    np.testing.assert_allclose(radiance, want_r, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(inv, want_i, rtol=1e-15)
