@@ -213,7 +213,8 @@ def test_hat_split_checks_the_middle_and_the_samples_inside_each_interval_only()
     samples strictly inside it, not those nearest the samples at or beyond its ends: a
     blend error only at 0.05 (scene values 0.05, 0.5, 0.75 between representatives 0 and
     1) is not seen with samples 0, 1 (the check is 0.5), and is not a representative;
-    nor is one at 0.75; that is seen with a sample at 0.8 (nearest 0.75) and becomes one."""
+    nor is one at 0.75; that is seen with a sample at 0.8 (nearest 0.75) and becomes one.
+    A spike at 0.45, nearest the middle from below (scene values 0.45, 0.6), is seen."""
     parts = [(1.0, 0.0), (2.0, 1.0)]
     present = np.array([0.0, 0.05, 0.5, 0.75, 1.0])
 
@@ -230,6 +231,11 @@ def test_hat_split_checks_the_middle_and_the_samples_inside_each_interval_only()
                                        spike_at(0.75), 0.5)
     assert [r for _, r in split] == [0.0, 0.75, 1.0]
     assert checks == [(0.5, 0.0, 0.75)]  # on (0, 0.75): the middle 0.375 is nearest 0.5
+    # the scene value nearest the middle may lie below it: 0.45 (0.05 away, 0.6 is 0.1)
+    present = np.array([0.0, 0.45, 0.6, 1.0])
+    split, checks = planner._hat_split(parts, np.array([0.0, 1.0]), present, spike_at(0.45),
+                                       0.5)
+    assert [r for _, r in split] == [0.0, 0.45, 1.0]
 
 
 def test_forced_depths_at_a_groups_nearest_or_farthest_value_become_representatives():
@@ -336,26 +342,28 @@ def _gain_scene(rows, cols, depths, seed):
     return Scene.from_depth(radiance, depth, alpha=alpha)
 
 
-def _brute_gain(scene, reps, profile, node_count):
+def _brute_gain(scene, groups, profile, node_count):
     """Mean-radiance error of hat layers by a per-pixel gather, written out here: pixel
-    ``p`` gathers ``sum_delta alpha(s) (K_hat_{D(s)}(delta) - K_{D(s)}(delta))`` over
-    sources ``s = p - delta`` (the scene mirrored beyond its border without repeating the
-    edge pixel), ``K_hat`` linear in D between neighbouring representatives (the end
-    ones beyond them), ``K`` the true kernel (over ``node_count`` depths: linear between
-    that many nodes uniform in D). Returns ``mean radiance / std * RMS(g)`` and the
-    depth of the worst pixel's largest share that is not a representative."""
-    surface = scene.surfaces[0]
-    alpha, inv = surface.alpha, 1.0 / surface.depth_mm
-    rows, cols = alpha.shape
-    seen = alpha > 0
-    radiance = surface.radiance.mean(axis=-1)[seen]
+    ``p`` gathers ``sum_surfaces sum_delta alpha(s) (K_hat_{D(s)}(delta) -
+    K_{D(s)}(delta))`` over sources ``s = p - delta`` (each surface mirrored beyond the
+    border without repeating the edge pixel), ``K_hat`` linear in D between neighbouring
+    representatives of the group ``[(lo, hi, reps), ...]`` holding ``D`` (its end ones
+    beyond them), ``K`` the true kernel (over ``node_count`` depths: linear between that
+    many nodes uniform in D). Returns ``mean radiance / std * RMS(g)`` (the surfaces
+    cover disjoint pixels) and the depth of the worst pixel's largest share that is not
+    a representative."""
+    rows, cols = scene.shape
+    covered = sum((s.alpha > 0).astype(int) for s in scene.surfaces)
+    assert covered.max() == 1
+    radiance = np.concatenate([s.radiance.mean(axis=-1)[s.alpha > 0] for s in scene.surfaces])
     ratio = radiance.mean() / radiance.std()
-    depths = np.unique(inv[seen])
+    depths = np.unique(np.concatenate([1.0 / s.depth_mm[s.alpha > 0] for s in scene.surfaces]))
+    all_reps = [r for _, _, reps in groups for r in reps]
 
     def kern(d):
         return psf.integrated_psf(LENS, 1.0 / d, profile, model="pillbox")
 
-    h = max(kern(d).shape[0] for d in (depths[0], depths[-1], *reps)) // 2
+    h = max(kern(d).shape[0] for d in (depths[0], depths[-1], *all_reps)) // 2
 
     def padded(d):
         k = kern(d)
@@ -363,9 +371,7 @@ def _brute_gain(scene, reps, profile, node_count):
 
     nodes = depths if depths.size <= node_count else np.linspace(depths[0], depths[-1],
                                                                    node_count)
-    rep_k = np.array([padded(d) for d in reps])
     node_k = np.array([padded(d) for d in nodes])
-    u_rep = np.interp(depths, reps, np.arange(len(reps)))  # fractional index, clamped
     u_node = np.interp(depths, nodes, np.arange(nodes.size))
 
     def blend(stack, u):
@@ -373,35 +379,42 @@ def _brute_gain(scene, reps, profile, node_count):
         hi = np.minimum(lo + 1, len(stack) - 1)
         return (1 - (u - lo))[:, None, None] * stack[lo] + (u - lo)[:, None, None] * stack[hi]
 
-    error = blend(rep_k, u_rep) - blend(node_k, u_node)  # per depth, (2h+1)^2
+    rendered = np.zeros((depths.size, *node_k.shape[1:]))
+    for lo, hi, reps in groups:
+        mine = (depths >= lo) & (depths <= hi)
+        u_rep = np.interp(depths[mine], reps, np.arange(len(reps)))  # clamped at the ends
+        rendered[mine] = blend(np.array([padded(d) for d in reps]), u_rep)
+    assert all(((depths >= lo) & (depths <= hi)).any() for lo, hi, _ in groups)
+    error = rendered - blend(node_k, u_node)  # per depth, (2h+1)^2
 
     def mirror(i, n):
         i = np.abs(i)
         return np.where(i > n - 1, 2 * (n - 1) - i, i)
 
     g = np.zeros((rows, cols))
-    share = {}
-    worst = None
+    share, worst = None, None
     for y in range(rows):
         for x in range(cols):
             total, mine = 0.0, np.zeros(nodes.size)
-            for dy in range(-h, h + 1):
-                for dx in range(-h, h + 1):
-                    sy, sx = mirror(y - dy, rows), mirror(x - dx, cols)
-                    if alpha[sy, sx] == 0:
-                        continue
-                    k = int(np.searchsorted(depths, inv[sy, sx]))
-                    part = alpha[sy, sx] * error[k, h + dy, h + dx]
-                    total += part
-                    lo = min(int(np.floor(u_node[k])), nodes.size - 1)
-                    frac = u_node[k] - lo
-                    mine[lo] += (1 - frac) * part
-                    if frac:
-                        mine[lo + 1] += frac * part
+            for surface in scene.surfaces:
+                alpha, inv = surface.alpha, 1.0 / surface.depth_mm
+                for dy in range(-h, h + 1):
+                    for dx in range(-h, h + 1):
+                        sy, sx = mirror(y - dy, rows), mirror(x - dx, cols)
+                        if alpha[sy, sx] == 0:
+                            continue
+                        k = int(np.searchsorted(depths, inv[sy, sx]))
+                        part = alpha[sy, sx] * error[k, h + dy, h + dx]
+                        total += part
+                        lo = min(int(np.floor(u_node[k])), nodes.size - 1)
+                        frac = u_node[k] - lo
+                        mine[lo] += (1 - frac) * part
+                        if frac:
+                            mine[lo + 1] += frac * part
             g[y, x] = total
             if worst is None or abs(total) > abs(g[worst]):
                 worst, share = (y, x), mine
-    share[np.isin(nodes, reps)] = 0
+    share[np.isin(nodes, all_reps)] = 0
     best = int(np.argmax(np.abs(share)))
     return ratio * math.sqrt(np.mean(g**2)), (float(nodes[best]) if share[best] else None)
 
@@ -431,7 +444,7 @@ def test_gain_error_matches_a_per_pixel_gather(count, seed):
     visible = scene.surfaces[0].radiance.mean(axis=-1)[seen]
     assert gain.ratio == pytest.approx(visible.mean() / visible.std(), rel=1e-12)
     got, depth = gain.error(0, rows, layers, profile=profile, cache=cache, near=present)
-    want, want_depth = _brute_gain(scene, reps, profile, 257)
+    want, want_depth = _brute_gain(scene, [(present[0], present[-1], reps)], profile, 257)
     assert want > 0
     assert got == pytest.approx(want, rel=1e-9)
     assert depth == want_depth
@@ -652,10 +665,11 @@ def test_edge_cells_need_the_budget_for_their_work(monkeypatch):
         mask, _ = planner._edges(scene, 0.5 * a_p)
         rr, cc = np.nonzero(mask)
         assert (rr.min(), rr.max(), cc.min(), cc.max()) == (12, 19, 0, 7)
-        cells = []
+        cells, widths = [], []
         aperture_cells = planner.edge_model.aperture_cells
 
-        def record(widest, aperture_cells=aperture_cells, cells=cells):
+        def record(widest, aperture_cells=aperture_cells, cells=cells, widths=widths):
+            widths.append([float(w) for w in widest])
             out = aperture_cells(widest)
             cells.append(len(out[0]))
             return out
@@ -668,6 +682,11 @@ def test_edge_cells_need_the_budget_for_their_work(monkeypatch):
         args = (scene, band, cache, pl.edge_inv_depth, mask, 1e-9)
         monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", 0.0)
         assert planner._edge_cells(*args) is None and len(cells) == 1  # counted, refused
+        # the aperture cells follow the occluders only: the near plane's widest blur
+        # radius over the window (the far plane occludes nothing)
+        knots = cam.motion.image_distances_mm
+        assert widths[-1] == [max(abs(planner.edge_model.signed_radius(LENS, 1 / 400.0, p))
+                                  for p in knots)]
         work = factor * len(band.steps) * cells[0] * len(band.layers) * box
         monkeypatch.setattr(planner, "EDGE_WORK_BUDGET", work - 1)
         assert planner._edge_cells(*args) is None
@@ -827,3 +846,52 @@ def test_visible_is_the_nearest_covering_surface_worked_out_by_hand():
     want_i = np.array([[1 / 300, 1 / 500, 1 / 900, np.nan]] * 3)
     np.testing.assert_allclose(radiance, want_r, rtol=0, atol=1e-15)
     np.testing.assert_allclose(inv, want_i, rtol=1e-15)
+
+
+def test_outline_of_a_hole_and_of_partial_cover_worked_out_by_hand():
+    """A surface's outline: its partly covered pixels and those with an uncovered pixel
+    among their 8 neighbours (outside the image counts as covered). A 5x6 plane with a
+    one-pixel hole at (2, 3) and alpha 0.5 at (0, 0): the hole's 8 neighbours and (0, 0)
+    (the pixel left of the hole sees it only as its right-hand neighbour)."""
+    alpha = np.ones((5, 6))
+    alpha[2, 3] = 0.0
+    alpha[0, 0] = 0.5
+    want = np.zeros((5, 6), bool)
+    want[1:4, 2:5] = True
+    want[2, 3] = False
+    want[0, 0] = True
+    np.testing.assert_array_equal(planner._outline(alpha), want)
+
+
+def test_gain_error_of_two_groups_matches_a_per_pixel_gather():
+    """``_Gain.error`` with two surfaces (two groups: 560-630 mm on the left columns, one
+    layer; 400-430 mm on the right, two) against ``_brute_gain``: a depth is blended only
+    between its own group's representatives, its group's end kernel beyond them."""
+    rng = np.random.default_rng(7)
+    rows, cols = 8, 10
+    left = np.zeros((rows, cols))
+    left[:, :5] = 1.0
+    far = 560.0 + 70.0 * rng.uniform(0.0, 1.0, (rows, cols))
+    near = 400.0 + 30.0 * rng.uniform(0.0, 1.0, (rows, cols))
+    surfaces = tuple(Surface(0.3 + rng.uniform(0.0, 1.0, (rows, cols, 1)), a, d)
+                     for a, d in ((left, far), (1.0 - left, near)))
+    scene = Scene(surfaces, channels_axis=False)
+    present = planner._present_inverse_depths(scene, LENS)
+    groups = planner._groups(scene, present)
+    assert len(groups) == 2
+    g0, g1 = groups
+    reps0 = [float(g0[len(g0) // 3])]
+    reps1 = [float(g1[3]), float(g1[-4])]
+    layers = (simulate.Layer(-math.inf, float(g0[-1]), reps0[0], 0),
+              simulate.Layer(float(g0[-1]), 0.5 * (reps1[0] + reps1[1]), reps1[0], 1),
+              simulate.Layer(0.5 * (reps1[0] + reps1[1]), float(g1[-1]), reps1[1], 1))
+    profile = Profile([0.0, 0.01], [12.78, 12.84])
+    cache = planner._KernelCache(LENS, "pillbox", planner._Spectra(256))
+    half = max(cache.kernel(float(d), profile).shape[0] for d in present) // 2
+    gain = planner._Gain(scene, present, half)
+    got, depth = gain.error(0, rows, layers, profile=profile, cache=cache, near=present)
+    want, want_depth = _brute_gain(scene, [(g0[0], g0[-1], reps0), (g1[0], g1[-1], reps1)],
+                                   profile, 257)
+    assert want > 0
+    assert got == pytest.approx(want, rel=1e-9)
+    assert depth == want_depth
