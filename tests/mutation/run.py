@@ -369,6 +369,10 @@ for _m in ("core/simulate/render.py", "core/simulate/composite.py", "core/simula
     MODULES[_m] = _SIM
     FULL[_m] = [*_SIM, _SR, "tests/test_applications.py",
                 "tests/test_cli_flags.py::test_render_reports_progress_per_step"]
+# helper mut-planner: the planner's internals against independent computations (~4 s) first
+MODULES["core/simulate/planner.py"] = ["tests/test_planner_units.py", *_SIM]
+FULL["core/simulate/planner.py"] = ["tests/test_planner_units.py",
+                                    *FULL["core/simulate/planner.py"]]
 MODULES["core/deconvolve/gcv.py"] = ["tests/test_gcv_mutation_kills.py", *_GCV]
 FULL["core/deconvolve/gcv.py"] = [*MODULES["core/deconvolve/gcv.py"], "tests/test_references.py"]
 # ---- end of mutW's selections ----------------------------------------------------------------
@@ -398,6 +402,7 @@ exclude-operators = [
 """
 TIMEOUT = 60.0
 SAMPLE = 1.0
+EXCLUDE = 0.0  # --exclude-sample: the mutants of this smaller sample are skipped too
 
 
 def scratch_copy(dest: Path) -> None:
@@ -432,8 +437,8 @@ def score(module: str, work: Path, sessions: Path) -> dict:
     run = dict(cwd=work, check=True, capture_output=True, text=True)
     subprocess.run(["cosmic-ray", "init", str(config), str(session)], **run)
     subprocess.run(["cr-filter-operators", str(session), str(config)], **run)
-    if SAMPLE < 1.0:
-        sample(session, SAMPLE)
+    if SAMPLE < 1.0 or EXCLUDE > 0.0:
+        sample(session, SAMPLE, EXCLUDE)
     subprocess.run(["cosmic-ray", "exec", str(config), str(session)], **run)
     dump = subprocess.run(["cosmic-ray", "dump", str(session)], **run).stdout
     counts = {"killed": 0, "survived": 0, "incompetent": 0, "pending": 0, "skipped": 0}
@@ -462,17 +467,19 @@ def in_sample(mutation: dict, fraction: float) -> bool:
     return int(hashlib.sha256(key.encode()).hexdigest()[:8], 16) < fraction * 16**8
 
 
-def sample(session: Path, fraction: float) -> None:
-    """Skip the pending mutants outside the ``fraction`` sample (``--sample``)."""
+def sample(session: Path, fraction: float, exclude: float = 0.0) -> None:
+    """Skip the pending mutants outside the ``fraction`` sample (``--sample``) and those
+    inside the smaller ``exclude`` sample (``--exclude-sample``: scored before; the
+    samples are nested, so this leaves only mutants no earlier session ran)."""
     from cosmic_ray.work_db import use_db
     from cosmic_ray.work_item import WorkerOutcome, WorkResult
 
     with use_db(str(session)) as db:
         for item in list(db.pending_work_items):
             m = item.mutations[0]
-            if not in_sample({"module_path": str(m.module_path),
-                              "operator_name": m.operator_name,
-                              "occurrence": m.occurrence}, fraction):
+            key = {"module_path": str(m.module_path), "operator_name": m.operator_name,
+                   "occurrence": m.occurrence}
+            if not in_sample(key, fraction) or (exclude > 0.0 and in_sample(key, exclude)):
                 db.set_result(item.job_id, WorkResult(output="not in the --sample",
                                                       worker_outcome=WorkerOutcome.SKIPPED))
 
@@ -619,10 +626,13 @@ def main(argv=None) -> int:
     parser.add_argument("--timeout", type=float, default=60.0, help="seconds per mutant")
     parser.add_argument("--sample", type=float, default=1.0, metavar="FRACTION",
                         help="run only this fraction of the mutants (a fixed hash sample)")
+    parser.add_argument("--exclude-sample", type=float, default=0.0, metavar="FRACTION",
+                        help="skip the mutants of this smaller sample (already scored)")
     args = parser.parse_args(argv)
-    global TIMEOUT, SAMPLE
+    global TIMEOUT, SAMPLE, EXCLUDE
     TIMEOUT = args.timeout
     SAMPLE = args.sample
+    EXCLUDE = args.exclude_sample
     if args.recheck:
         for module in args.modules:
             recheck(module, args.recheck, args.full, args.timeouts)

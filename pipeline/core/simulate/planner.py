@@ -883,10 +883,14 @@ def _visible(scene: Scene) -> tuple[np.ndarray, np.ndarray]:
 
 def _contrast(scene: Scene) -> float:
     """RMS contrast of the visible radiance (nearest surface first, channel mean): the unit
-    of the occlusion estimates."""
+    of the occlusion estimates. 0 for a uniform radiance: a standard deviation within
+    1e-12 of the largest radiance is rounding (``np.std`` of 0.7s is 1.1e-16, not 0)."""
     radiance, inv = _visible(scene)
     filled = ~np.isnan(inv)
-    return float(np.std(radiance[filled])) if filled.any() else 0.0
+    if not filled.any():
+        return 0.0
+    std = float(np.std(radiance[filled]))
+    return std if std > 1e-12 * float(np.max(np.abs(radiance[filled]))) else 0.0
 
 
 def _edge_cells(scene: Scene, band: Band, cache: _KernelCache, edge: float, edge_mask, tol):
