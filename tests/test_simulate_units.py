@@ -169,7 +169,7 @@ def _over_and_exact(near, far, alpha, rn, rf, half, weights):
 @pytest.mark.parametrize(
     ("rn", "rf", "weights"),
     [([2.3], [-1.4], None), ([-1.8], [3.2], None), ([1.2, 2.9], [-0.7, 1.6], [0.3, 0.7]),
-     ([2.6, -1.1], [1.5, 0.9], None)],
+     ([2.6, -1.1], [1.5, 0.9], None), ([0.7], [-2.4], None), ([-0.6, 0.45], [1.9, 2.2], None)],
 )
 def test_edge_error_is_over_against_the_reference_trace(rn, rf, weights):
     """``edge_error`` = sum over the crop of (over - exact)^2 per row, the crop being the
@@ -190,7 +190,7 @@ def test_edge_error_is_over_against_the_reference_trace(rn, rf, weights):
     over, exact = _over_and_exact(near, far, alpha, rn, rf, half, w)
     want = np.sum((over - exact) ** 2) / 64
     got = edge.edge_error(near_tex, far_tex, rn, rf, weights, centre)
-    assert want > 1e-4
+    assert want > 1e-5
     assert got == pytest.approx(want, rel=1e-9)
     if weights is None and len(rn) > 1:
         assert edge.edge_error(near_tex, far_tex, rn, rf, [0.5, 0.5], centre) == pytest.approx(
@@ -274,3 +274,19 @@ def test_hat_split_worked_by_hand():
     np.testing.assert_allclose(theta, [[0.5, 0.0, 0.75], [0.0, 1.0, 1.0]], atol=1e-12)
     lo, theta = composite._hat(inv, layers[:1], idx)
     assert not lo.any() and not theta.any() and lo.shape == inv.shape
+
+
+def test_edge_error_crops_about_column_0_by_default():
+    """Without ``centre`` the edge sits at column 0: the crop is the texture mirrored about
+    it, column ``k - cols/2`` taking column ``|k - cols/2|`` (``rho`` 1.3 and -2.1: half
+    ``ceil(2.6) + 1 = 4``, cols ``2 (8 + 8) = 32``)."""
+    rng = np.random.default_rng(8)
+    near_tex, far_tex = rng.uniform(0, 1, (10, 90)), rng.uniform(0, 1, (10, 90))
+    half, cols = 4, 32
+    s = np.abs(np.arange(cols) - cols // 2)
+    near, far = near_tex[:, s], far_tex[:, s]
+    alpha = np.zeros((10, cols))
+    alpha[:, : cols // 2] = 1.0
+    over, exact = _over_and_exact(near, far, alpha, [1.3], [-2.1], half, [1.0])
+    want = np.sum((over - exact) ** 2) / 10
+    assert edge.edge_error(near_tex, far_tex, 1.3, -2.1) == pytest.approx(want, rel=1e-9)
