@@ -18,6 +18,7 @@ from scipy import integrate, ndimage
 
 from pipeline.core import optics, simulate
 from pipeline.core.lens import Lens
+from pipeline.core.motion import Profile
 from pipeline.core.scene import Camera, Scene
 from pipeline.core.simulate import composite, edge
 
@@ -321,3 +322,33 @@ def test_colour_channels_are_rendered_independently_with_occlusion():
     for c in range(3):
         grey = simulate.render(scene(far[..., c], mid[..., c]), cam, plan_=pl)
         np.testing.assert_allclose(out[..., c], grey.reshape(rows, cols), rtol=0, atol=1e-9)
+
+
+def test_one_edge_time_cell_of_a_sweep_is_the_static_correction_at_its_mid_time():
+    """One time cell renders the sub-aperture correction at the cell's mid time: for a
+    sweep with an uneven speed (knots at 0, 40 and 100 ms) the correction equals that of
+    a detector standing at the position of t = 50 ms, and not that of the start."""
+    pad, shape = 6, (32, 38)
+    lens = Lens(focal_length_mm=12.5, f_number=1.4, pixel_pitch_um=20.0, width_px=26,
+                height_px=20)
+    rng = np.random.default_rng(9)
+    a_near = np.zeros(shape)
+    a_near[:19, :17] = 1.0
+    near = np.dstack([rng.uniform(0, 1, shape) * a_near, a_near])
+    far = np.dstack([rng.uniform(0, 1, shape), np.ones(shape)])
+    blocks = [(1, (0, shape[0], 0, shape[1]), near), (0, (0, shape[0], 0, shape[1]), far)]
+    layers = [SimpleNamespace(inv_rep=1 / 1500.0), SimpleNamespace(inv_rep=1 / 600.0)]
+    p0, p1, p2 = (optics.image_distance(12.5, u) for u in (2000.0, 1200.0, 700.0))
+    sweep = Profile([0.0, 0.04, 0.1], [p0, p1, p2])
+    p_mid = p1 + (p2 - p1) * (0.05 - 0.04) / 0.06
+
+    def correction(profile):
+        out = np.zeros((*shape, 1))
+        composite.edge_correction(out, blocks, layers, profile, lens, 0.0, 1.0, 1, pad)
+        return out
+
+    got = correction(sweep)
+    assert np.max(np.abs(got)) > 1e-3
+    np.testing.assert_allclose(got, correction(Profile([0.0, 0.1], [p_mid, p_mid])),
+                               rtol=0, atol=1e-12)
+    assert np.max(np.abs(got - correction(Profile([0.0, 0.1], [p0, p0])))) > 1e-3
