@@ -282,7 +282,8 @@ def test_hat_split_worked_by_hand():
 def test_edge_error_crops_about_column_0_by_default():
     """Without ``centre`` the edge sits at column 0: the crop is the texture mirrored about
     it, column ``k - cols/2`` taking column ``|k - cols/2|`` (``rho`` 1.3 and -2.1: half
-    ``ceil(2.6) + 1 = 4``, cols ``2 (8 + 8) = 32``)."""
+    ``ceil(2.6) + 1 = 4``, cols ``2 (8 + 8) = 32``). (Centre 1 gives the same error: its
+    crop is this one mirrored about the edge line, which leaves the error unchanged.)"""
     rng = np.random.default_rng(8)
     near_tex, far_tex = rng.uniform(0, 1, (10, 90)), rng.uniform(0, 1, (10, 90))
     half, cols = 4, 32
@@ -352,3 +353,19 @@ def test_one_edge_time_cell_of_a_sweep_is_the_static_correction_at_its_mid_time(
     np.testing.assert_allclose(got, correction(Profile([0.0, 0.1], [p_mid, p_mid])),
                                rtol=0, atol=1e-12)
     assert np.max(np.abs(got - correction(Profile([0.0, 0.1], [p0, p0])))) > 1e-3
+
+
+def test_a_depth_nearer_than_the_last_layer_is_rendered_with_it():
+    """A surface nearer than the last layer's end (a plan made for a farther scene) is
+    rendered with the last layer, not dropped: one layer, occlusion on, full coverage,
+    is the radiance convolved with its kernel (``ndimage.convolve``, mirrored borders;
+    an asymmetric kernel, so a correlation would differ)."""
+    rng = np.random.default_rng(11)
+    rad = rng.uniform(0, 1, (14, 17))
+    scene = Scene.from_depth(rad, np.full((14, 17), 300.0))
+    k = np.array([[0.0, 0.1, 0.05], [0.1, 0.4, 0.2], [0.0, 0.1, 0.05]])
+    cache = SimpleNamespace(kernel=lambda inv, profile, scale: k, lens=None)
+    layer = SimpleNamespace(inv_lo=1 / 2000.0, inv_hi=1 / 1000.0, inv_rep=1 / 1500.0, group=0)
+    got = composite.layered(scene, [layer], None, cache, True, 0.0)
+    want = ndimage.convolve(rad, k, mode="mirror")
+    np.testing.assert_allclose(got[..., 0], want, rtol=0, atol=1e-12)
