@@ -355,6 +355,7 @@ for _m in ("workflow/plan.py", "workflow/run.py"):
 _SR = "tests/test_simulate_reference.py"
 _SIM = [  # every test under ~1 s that reaches them, cheapest first (measured, 2026-11-26);
     # FULL adds the slow reference comparisons (rolling shutter, wide angle: 3-45 s each)
+    "tests/test_simulate_units.py",  # helper simmut: edge's and composite's units (~2 s)
     "tests/test_simulate_mutation_kills.py",
     f"{_SR}::test_disk_rect_area_exact",
     f"{_SR}::test_reference_and_simulator_agree_where_both_are_exact",
