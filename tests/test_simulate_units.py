@@ -369,3 +369,21 @@ def test_a_depth_nearer_than_the_last_layer_is_rendered_with_it():
     got = composite.layered(scene, [layer], None, cache, True, 0.0)
     want = ndimage.convolve(rad, k, mode="mirror")
     np.testing.assert_allclose(got[..., 0], want, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize(
+    ("width", "centre", "cols"), [(2, 1, 9), (5, 0, 40), (7, 3, 4), (3, 2, 61)]
+)
+def test_crop_mirrors_the_texture_about_its_end_columns_however_wide(width, centre, cols):
+    """Column ``j`` of the crop is texture column ``m(centre - cols // 2 + j)``, ``m`` the
+    mirror about the end columns with period ``2 (width - 1)``, written out here; crops up to
+    30 times the texture's width (where a single reflection would not reach)."""
+    tex = np.arange(3 * width, dtype=float).reshape(3, width) ** 1.5  # uneven columns
+    period = 2 * (width - 1)
+
+    def mirrored(i):
+        i %= period
+        return i if i < width else period - i
+
+    expected = tex[:, [mirrored(centre - cols // 2 + j) for j in range(cols)]]
+    np.testing.assert_array_equal(edge._crop(tex, centre, cols), expected)

@@ -72,14 +72,10 @@ def _rect(d, rho):
 
 
 def _crop(tex: np.ndarray, centre: int, cols: int) -> np.ndarray:
-    """``cols`` columns of ``tex`` centred on the edge column ``centre`` (mirrored beyond)."""
-    tex = np.asarray(tex, float)[:_CANONICAL_ROWS]
-    while tex.shape[1] < 3 * cols:
-        tex = np.pad(tex, ((0, 0), (tex.shape[1] - 1, tex.shape[1] - 1)), mode="reflect")
-        centre += (tex.shape[1] - 1) // 3
-    pad = cols
-    tex = np.pad(tex, ((0, 0), (pad, pad)), mode="reflect")
-    start = centre + pad - cols // 2
+    """``cols`` columns of ``tex`` centred on the edge column ``centre`` (mirrored beyond:
+    numpy's reflect repeats the mirroring for pads wider than the texture)."""
+    tex = np.pad(np.asarray(tex, float)[:_CANONICAL_ROWS], ((0, 0), (cols, cols)), mode="reflect")
+    start = centre + cols - cols // 2
     return tex[:, start : start + cols]
 
 
