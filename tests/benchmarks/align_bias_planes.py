@@ -24,7 +24,7 @@ from skimage import data
 TESTS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS))
 
-from benchmarks.align_without_breathing import corner_error_px  # noqa: E402
+from benchmarks.align_without_breathing import corner_error_px, write_table  # noqa: E402
 from test_engine import make_stack, positions_for  # noqa: E402
 
 from pipeline.core.colour import srgb_to_linear  # noqa: E402
@@ -64,9 +64,7 @@ def main(argv=None) -> int:
                 f"{scales} | {corner:.2f} |"
             )
             print(rows[-1], flush=True)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "align_bias_planes.md").write_text("\n".join(rows) + "\n", encoding="utf-8")
-    print(f"wrote {args.out / 'align_bias_planes.md'}")
+    write_table(args.out / "align_bias_planes.md", rows)
     return 0
 
 

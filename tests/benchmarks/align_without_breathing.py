@@ -85,6 +85,13 @@ def compare_models(stack: Path, out: Path, truth, breathing: bool):
     return cells, corners
 
 
+def write_table(path: Path, rows: list[str]) -> None:
+    """Write a results table (markdown lines), creating its folder, and say where."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(rows) + "\n", encoding="utf-8")
+    print(f"wrote {path}")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path, default=Path(__file__).parent / "results" / "align")
@@ -116,9 +123,7 @@ def main(argv=None) -> int:
             )
             print(line, flush=True)
             rows.append(line)
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "align_without_breathing.md").write_text("\n".join(rows) + "\n", encoding="utf-8")
-    print(f"wrote {args.out / 'align_without_breathing.md'}")
+    write_table(args.out / "align_without_breathing.md", rows)
     return 0
 
 
