@@ -22,11 +22,11 @@ def _frames(n=5, shape=(40, 56, 3), seed=0):
     return [rng.uniform(0.0, 1.0, shape).astype(np.float32) for _ in range(n)]
 
 
-def _streamed(frames, order):
+def _streamed(frames, order, full=True):
     """Merge the frames' statistics in ``order`` as two lanes would (then lane 1 into 0)."""
     lanes = [None, None]
     for k, i in enumerate(order):
-        leaf = FrameSupport.of_frame(frames[i], np.ones(frames[i].shape[:2], bool))
+        leaf = FrameSupport.of_frame(frames[i], np.ones(frames[i].shape[:2], bool), full=full)
         lane = k % 2
         lanes[lane] = leaf if lanes[lane] is None else lanes[lane].merge(leaf)
     return lanes[0].merge(lanes[1])
@@ -74,17 +74,27 @@ def test_a_single_frame_merged_is_not_changed_in_place():
     np.testing.assert_array_equal(first.low, np.minimum(kept, fs.to_codes(frames[1])))
 
 
-def test_clip_to_frames_is_a_3x3_min_max_filter():
+@pytest.mark.parametrize(
+    ("shape", "full"),
+    [
+        ((30, 33, 3), True),
+        ((2 * fs.CLIP_STRIP_ROWS + 7, 21, 3), False),  # strips, and their seams
+        ((fs.CLIP_STRIP_ROWS + 1, 9), False),  # grey, one row in the last strip
+    ],
+)
+def test_clip_to_frames_is_a_3x3_min_max_filter(shape, full):
     rng = np.random.default_rng(1)
-    frames = [rng.uniform(0.01, 0.99, (30, 33, 3)).astype(np.float32) for _ in range(3)]
-    support = _streamed(frames, [0, 1, 2])
+    frames = [rng.uniform(0.01, 0.99, shape).astype(np.float32) for _ in range(3)]
+    support = _streamed(frames, [0, 1, 2], full)
+    assert (support.sharpest is None) == (not full)  # the range only: no frame choice
     image = rng.uniform(-0.5, 1.5, frames[0].shape).astype(np.float32)
     clipped = np.zeros(image.shape[:2], bool)
     clipped[5:8, 10:20] = True
     got = fs.clip_to_frames(image.copy(), support, clipped)
     stacked = np.stack(frames)
-    low = ndimage.minimum_filter(stacked.min(axis=0), size=(3, 3, 1), mode="nearest")
-    high = ndimage.maximum_filter(stacked.max(axis=0), size=(3, 3, 1), mode="nearest")
+    box = (3, 3, 1)[: image.ndim]
+    low = ndimage.minimum_filter(stacked.min(axis=0), size=box, mode="nearest")
+    high = ndimage.maximum_filter(stacked.max(axis=0), size=box, mode="nearest")
     high[clipped] = np.inf
     # the frames' own values always pass; the bound is loose by at most 1.5 codes
     assert np.all(got >= low - 1.5 / fs.CODE_MAX) and np.all(got <= high + 1.5 / fs.CODE_MAX)
@@ -194,22 +204,34 @@ def test_wiener_max_noise_caps_the_results_noise():
     np.testing.assert_array_equal(capped.params["lam"], gcv_plan.params["lam"])
 
 
-def test_the_main_job_with_the_guard_stays_within_the_frames(tmp_path):
+def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
     from pipeline.io.read import read_frame
     from pipeline.jobs.options import StackOptions
     from pipeline.jobs.stack import process_stack
 
     sample = Path(__file__).resolve().parents[1] / "stacks" / "motorcycle"
-    options = StackOptions(align="none", frame_guard=True, encoding="float32")
-    guarded = process_stack(sample, tmp_path / "g.tif", options)
-    plain = process_stack(sample, tmp_path / "p.tif", StackOptions(align="none"))
+
+    def run(name, **options):
+        options = StackOptions(align="none", encoding="float32", **options)
+        return process_stack(sample, tmp_path / name, options)
+
+    guarded, plain, unclipped = run("g.tif", frame_guard=True), run("p.tif"), run(
+        "u.tif", range_clip=False
+    )
     frames = np.stack([read_frame(f) for f in sorted(sample.glob("frame_*.png"))])
     low = ndimage.minimum_filter(frames.min(axis=0), size=(3, 3, 1), mode="nearest")
     high = ndimage.maximum_filter(frames.max(axis=0), size=(3, 3, 1), mode="nearest")
     high[np.any(frames >= 0.999, axis=(0, 3))] = np.inf  # clipped somewhere: no upper bound
+    high[high >= 1 - 0.5 / fs.CODE_MAX] = np.inf  # white within 3x3 (the end code): open
     tol = 1.5 / fs.CODE_MAX
-    out = guarded.image
-    assert np.all(out >= low - tol) and np.all(out <= high + tol)
-    assert np.mean((plain.image < low - tol) | (plain.image > high + tol)) > 0.01  # it did
+
+    def outside(image, tol=tol):
+        return (image < low - tol) | (image > high + tol)
+
+    assert not np.any(outside(guarded.image)) and not np.any(outside(plain.image))
+    assert np.mean(outside(unclipped.image)) > 0.01  # the clip did something
+    changed = plain.image != unclipped.image  # and only where the range was left (codes
+    assert np.all(outside(unclipped.image, 0.4 / fs.CODE_MAX)[changed])  # round: +-0.5)
     assert set(guarded.sidecar["frame_guard"]) == {"sharpest_frame_fraction", "noise_ceiling"}
-    assert "frame_guard" not in plain.sidecar
+    assert "frame_guard" not in plain.sidecar and "frame_guard" not in unclipped.sidecar
+    assert (plain.sidecar["range_clip"], unclipped.sidecar["range_clip"]) == (True, False)

@@ -242,6 +242,14 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         "double a fitted blur span (slower; worse on stacks that follow the paper's model)",
     )
     parser.add_argument(
+        "--no-range-clip",
+        dest="range_clip",
+        action="store_const",
+        const=False,
+        help="keep values outside the aligned frames' range (the paper's linear result; by "
+        "default the result is clipped to the frames' 3x3 range: no rims or dark moats)",
+    )
+    parser.add_argument(
         "--max-pixels",
         type=int,
         metavar="N",
@@ -270,4 +278,5 @@ def stack_options(args: argparse.Namespace):
         save_kernel=getattr(args, "save_kernel", None),
         max_pixels=given("max_pixels"),
         frame_guard=given("frame_guard"),
+        range_clip=given("range_clip"),
     )

@@ -39,6 +39,11 @@ class StackOptions:
     # (0.3-1.2 dB on synthetic scenes, 3.8 dB with a fitted span) and 40-80% slower:
     # off by default
     frame_guard: bool = False
+    # clip the result to the aligned frames' 3x3 range (pipeline.core.frame_support): no
+    # rims or moats on real photographs (issue 13: halo losses to focus-stack 27 -> 0 of
+    # 36 regions), never worse than 0.05 dB on stacks that follow the model (+0.1-0.4 dB
+    # on the three-plane scenes); --no-range-clip keeps the paper's unclipped result
+    range_clip: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

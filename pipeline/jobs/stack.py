@@ -26,7 +26,12 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus
-from pipeline.core.frame_support import FrameSupport, keep_to_frames, noise_ceiling
+from pipeline.core.frame_support import (
+    FrameSupport,
+    clip_to_frames,
+    keep_to_frames,
+    noise_ceiling,
+)
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
 from pipeline.core.weights import constant_speed_weights
@@ -235,10 +240,11 @@ def accumulate(
     options: StackOptions,
     *,
     progress: Progress = _no_progress,
-    support: bool = False,
+    support: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray, FrameSupport | None]:
     """``sum_i w_i warp(frame_i)`` streamed through dask, the pixels clipped in any frame
-    and, with ``support``, the frames' per-pixel range and sharpest frame.
+    and, with ``support``, the frames' per-pixel range (``"range"``), or also their
+    sharpest frame and noise (``"full"``).
 
     ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
     """
@@ -391,13 +397,13 @@ def process_stack(
             _stack_ipsf, aligned, weights, blur_span, fit, options.frame_guard
         )
         average, clipped, frames = accumulate(
-            aligned, weights, options, progress=progress, support=options.frame_guard
+            aligned, weights, options, progress=progress, support=_support(options)
         )
         kernel, kernel_samples, kernel_summary = kernel_job.result()
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    ceiling = None if frames is None else noise_ceiling(frames, average, clipped)
+    ceiling = noise_ceiling(frames, average, clipped) if options.frame_guard else None
     result = restore_image(
         average,
         kernel,
@@ -410,17 +416,29 @@ def process_stack(
     timings["deconvolve"] = time.perf_counter() - t0
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
-    if frames is not None:
-        t0 = time.perf_counter()
+    t0 = time.perf_counter()
+    if options.frame_guard:
         result, blended = keep_to_frames(result, frames, clipped)
         timings["frame_guard"] = time.perf_counter() - t0
         sidecar["frame_guard"] = {
             "sharpest_frame_fraction": round(blended, 4),
             "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
+    elif frames is not None:
+        result = clip_to_frames(result, frames, clipped)
+        timings["range_clip"] = time.perf_counter() - t0
+    sidecar["range_clip"] = frames is not None
     progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
+
+
+def _support(options: StackOptions) -> str | None:
+    """What the accumulation streams of the frames beside their sum: everything the frame
+    guard uses, or the range the clip needs, or nothing."""
+    if options.frame_guard:
+        return "full"
+    return "range" if options.range_clip else None
 
 
 def _stack_ipsf(

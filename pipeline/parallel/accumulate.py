@@ -25,10 +25,10 @@ LANES = 2
 
 
 # ----------------------------------------------------------------------------- frame leaves
-def _warped_leaf(path: str, homography, weight, shape, support: bool = False):
+def _warped_leaf(path: str, homography, weight, shape, support: str | None = None):
     """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode
-    time; with ``support``, its :class:`~pipeline.core.frame_support.FrameSupport`
-    (else ``None``).
+    time; with ``support`` (``"range"`` or ``"full"``), its
+    :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``).
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
     """
@@ -38,7 +38,7 @@ def _warped_leaf(path: str, homography, weight, shape, support: bool = False):
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
-    stats = FrameSupport.of_frame(frame, ~clipped) if support else None
+    stats = FrameSupport.of_frame(frame, ~clipped, full=support == "full") if support else None
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
@@ -54,7 +54,7 @@ def _merge(a, b):
     return a[0], a[1], a[2] + b[2], None if a[3] is None else a[3].merge(b[3])
 
 
-def _add_frame(partial, path: str, homography, weight, shape, support: bool = False):
+def _add_frame(partial, path: str, homography, weight, shape, support: str | None = None):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
     leaf = _warped_leaf(path, homography, weight, shape, support)
@@ -68,7 +68,7 @@ def weighted_sum_graph(
     shape,
     *,
     lanes: int = LANES,
-    support: bool = False,
+    support: str | None = None,
 ):
     """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
 
@@ -80,8 +80,8 @@ def weighted_sum_graph(
     side by side. The result's bits depend on ``lanes`` (the float32 summation
     order), not on the scheduler or its threads. Returns a Delayed yielding
     ``(sum, clipped_any_frame, decode_seconds, support)``; ``support`` is the read
-    frames' :class:`~pipeline.core.frame_support.FrameSupport` when asked for, else
-    ``None``.
+    frames' :class:`~pipeline.core.frame_support.FrameSupport` when asked for (``"range"``:
+    their per-pixel range only; ``"full"``: all of it), else ``None``.
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")

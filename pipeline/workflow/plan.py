@@ -132,6 +132,8 @@ def plan_stacks(
             blur_span_px=merged.get("blur_span_px"),
             tile_px=merged.get("tile_px", 1024),
             align_max_side_px=merged.get("align_max_side_px", 768),
+            frame_guard=merged.get("frame_guard", False),
+            range_clip=merged.get("range_clip", True),
         )
         if spec.directories is not None:
             pattern = str(base / spec.directories)
