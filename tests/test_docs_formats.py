@@ -211,12 +211,13 @@ def sidecar_keys(tmp_path_factory) -> set[str]:
     )
     keys: set[str] = set()
     with scheduler_context(threads=1):
-        for directory, options in (
+        for run, (directory, options) in enumerate((
             (stack, StackOptions(align="analytic", save_kernel=base / "kernel.tif",
                                  frame_guard=True)),
+            (stack, StackOptions(align="analytic")),  # the default's frame_range
             (sweep, StackOptions()),
-        ):
-            output = base / f"{directory.name}.tif"
+        )):
+            output = base / f"{directory.name}{run}.tif"
             process_stack(directory, output, options)
             keys |= _keys(json.loads(output.with_name(output.name + ".json").read_text()))
     return keys

@@ -216,7 +216,7 @@ def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
         return process_stack(sample, tmp_path / name, options)
 
     guarded, plain, unclipped = run("g.tif", frame_guard=True), run("p.tif"), run(
-        "u.tif", range_clip=False
+        "u.tif", frame_range=False
     )
     frames = np.stack([read_frame(f) for f in sorted(sample.glob("frame_*.png"))])
     low = ndimage.minimum_filter(frames.min(axis=0), size=(3, 3, 1), mode="nearest")
@@ -230,8 +230,31 @@ def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
 
     assert not np.any(outside(guarded.image)) and not np.any(outside(plain.image))
     assert np.mean(outside(unclipped.image)) > 0.01  # the clip did something
-    changed = plain.image != unclipped.image  # and only where the range was left (codes
-    assert np.all(outside(unclipped.image, 0.4 / fs.CODE_MAX)[changed])  # round: +-0.5)
     assert set(guarded.sidecar["frame_guard"]) == {"sharpest_frame_fraction", "noise_ceiling"}
     assert "frame_guard" not in plain.sidecar and "frame_guard" not in unclipped.sidecar
-    assert (plain.sidecar["range_clip"], unclipped.sidecar["range_clip"]) == (True, False)
+    assert set(plain.sidecar["frame_range"]) == {"flat_fraction"}
+    assert "frame_range" not in unclipped.sidecar and "frame_range" not in guarded.sidecar
+
+
+def test_quiet_flat_areas_takes_the_averages_fine_band_where_every_frame_is_flat():
+    rng = np.random.default_rng(3)
+    shape = (96, 128)
+    base = np.full(shape, 0.3, np.float32)  # flat left half, textured right half
+    texture = ndimage.gaussian_filter(rng.uniform(0.0, 1.0, shape), 1.0)
+    base[:, 64:] = 0.1 + 0.6 * texture[:, 64:]
+    frames = [base + rng.normal(0, 2e-4, shape).astype(np.float32) for _ in range(4)]
+    support = _streamed(frames, [0, 1, 2, 3], full=False)
+    average = np.mean(frames, axis=0)
+    ramp = np.linspace(0.0, 0.05, shape[1], dtype=np.float32)[None, :]  # restored lows
+    restored = average + ramp + rng.normal(0, 0.02, shape).astype(np.float32)  # and noise
+    out, fraction = fs.quiet_flat_areas(restored.copy(), average, support)
+    assert 0.3 < fraction < 0.7
+    flat, textured = (slice(8, -8), slice(8, 48)), (slice(8, -8), slice(80, -8))
+
+    def fine(x):
+        return x - ndimage.gaussian_filter(x, 3.0)
+
+    assert np.std(fine(out)[flat]) < 0.2 * np.std(fine(restored)[flat])  # the noise went
+    low = ndimage.gaussian_filter(out, 4.0)[flat]  # the restored low frequencies stayed
+    np.testing.assert_allclose(low, ndimage.gaussian_filter(restored, 4.0)[flat], atol=1.5e-3)
+    np.testing.assert_array_equal(out[textured], restored[textured])  # detail: untouched

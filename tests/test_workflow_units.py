@@ -260,10 +260,10 @@ def test_plan_order_options_and_defaults(tmp_path):
     stacks = wplan.plan_stacks(load_workflow(overridden))
     assert stacks[0].options.method == "wiener" and stacks[0].options.tile_px == 256
     assert stacks[0].options.blur_span_px == 5.0  # the rest from [options]
-    assert (first.options.frame_guard, first.options.range_clip) == (False, True)
-    guarded = _flow(root, inputs_extra="options = { frame_guard = true, range_clip = false }\n")
+    assert (first.options.frame_guard, first.options.frame_range) == (False, True)
+    guarded = _flow(root, inputs_extra="options = { frame_guard = true, frame_range = false }\n")
     options = wplan.plan_stacks(load_workflow(guarded))[0].options
-    assert (options.frame_guard, options.range_clip) == (True, False)  # were ignored
+    assert (options.frame_guard, options.frame_range) == (True, False)  # were ignored
 
 
 def test_fingerprint_follows_contents_options_and_name_not_location(tmp_path):

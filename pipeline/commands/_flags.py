@@ -242,8 +242,8 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         "double a fitted blur span (slower; worse on stacks that follow the paper's model)",
     )
     parser.add_argument(
-        "--no-range-clip",
-        dest="range_clip",
+        "--no-frame-range",
+        dest="frame_range",
         action="store_const",
         const=False,
         help="keep values outside the aligned frames' range (the paper's linear result; by "
@@ -278,5 +278,5 @@ def stack_options(args: argparse.Namespace):
         save_kernel=getattr(args, "save_kernel", None),
         max_pixels=given("max_pixels"),
         frame_guard=given("frame_guard"),
-        range_clip=given("range_clip"),
+        frame_range=given("frame_range"),
     )

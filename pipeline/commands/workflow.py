@@ -78,7 +78,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         "blur_span_px": args.blur_span_px,
         "tile_px": args.tile_px,
         "frame_guard": args.frame_guard,
-        "range_clip": args.range_clip,
+        "frame_range": args.frame_range,
         "concurrency": args.concurrency,
         "threads_per_stack": args.threads,
         "scheduler": args.scheduler,

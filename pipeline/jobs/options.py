@@ -42,8 +42,8 @@ class StackOptions:
     # clip the result to the aligned frames' 3x3 range (pipeline.core.frame_support): no
     # rims or moats on real photographs (issue 13: halo losses to focus-stack 27 -> 0 of
     # 36 regions), never worse than 0.05 dB on stacks that follow the model (+0.1-0.4 dB
-    # on the three-plane scenes); --no-range-clip keeps the paper's unclipped result
-    range_clip: bool = True
+    # on the three-plane scenes); --no-frame-range keeps the paper's unclipped result
+    frame_range: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

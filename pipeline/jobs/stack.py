@@ -31,6 +31,7 @@ from pipeline.core.frame_support import (
     clip_to_frames,
     keep_to_frames,
     noise_ceiling,
+    quiet_flat_areas,
 )
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
@@ -425,9 +426,10 @@ def process_stack(
             "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
     elif frames is not None:
-        result = clip_to_frames(result, frames, clipped)
-        timings["range_clip"] = time.perf_counter() - t0
-    sidecar["range_clip"] = frames is not None
+        result, flat = quiet_flat_areas(result, average, frames)
+        result = clip_to_frames(result, frames, clipped)  # last: nothing leaves the range
+        timings["frame_range"] = time.perf_counter() - t0
+        sidecar["frame_range"] = {"flat_fraction": round(flat, 4)}
     progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
@@ -438,7 +440,7 @@ def _support(options: StackOptions) -> str | None:
     guard uses, or the range the clip needs, or nothing."""
     if options.frame_guard:
         return "full"
-    return "range" if options.range_clip else None
+    return "range" if options.frame_range else None
 
 
 def _stack_ipsf(

@@ -133,7 +133,7 @@ def plan_stacks(
             tile_px=merged.get("tile_px", 1024),
             align_max_side_px=merged.get("align_max_side_px", 768),
             frame_guard=merged.get("frame_guard", False),
-            range_clip=merged.get("range_clip", True),
+            frame_range=merged.get("frame_range", True),
         )
         if spec.directories is not None:
             pattern = str(base / spec.directories)

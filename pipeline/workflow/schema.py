@@ -27,7 +27,7 @@ _OPTION_KEYS = (
     "tile_px",
     "align_max_side_px",
     "frame_guard",
-    "range_clip",
+    "frame_range",
 )
 _OUTPUT_KEYS = ("directory", "name", "encoding")
 _RUN_KEYS = ("concurrency", "threads_per_stack", "scheduler", "retry_failed")
@@ -126,7 +126,7 @@ def _parse_options(path: Path, table: dict, where: str) -> dict:
             if not value > 0:
                 raise InputError(f"{path}: blur_span_px{where} must be > 0, got {value!r}")
             value = float(value)
-        elif key in ("frame_guard", "range_clip"):
+        elif key in ("frame_guard", "frame_range"):
             _typed(path, where, key, value, bool)
         else:
             _typed(path, where, key, value, int)
