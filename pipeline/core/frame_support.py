@@ -368,10 +368,13 @@ def prefer_sharpest(
     alpha = cv2.GaussianBlur(alpha, (0, 0), BLEND_SIGMA_PX / ENERGY_BLOCK_PX)
     size = (image.shape[1], image.shape[0])
     alpha = cv2.resize(alpha, size, interpolation=cv2.INTER_LINEAR)
-    # at or beyond white in the sharpest frame (any channel): its codes end there
-    saturated = np.any(sharpest == CODE_MAX, axis=2) if sharpest.ndim == 3 else (
-        sharpest == CODE_MAX
-    )
+    # at or beyond white in the sharpest frame (any channel): its codes end there (the
+    # channels' maximum by OpenCV: np.any over the channel axis took 43 ms on 3 Mpx)
+    channels = _channels(sharpest)
+    top = channels[0]
+    for channel in channels[1:]:
+        top = cv2.max(top, channel)
+    saturated = top == CODE_MAX
     if np.any(saturated):
         alpha[saturated] = 0.0
     fraction = float(np.mean(alpha > 0.5))
