@@ -158,7 +158,7 @@ def focus_measure(frame: np.ndarray) -> np.ndarray:
     the frames' order at each block counts.
     """
     lap = cv2.Laplacian(_grey(frame), cv2.CV_32F, ksize=3)
-    energy = _reduced(lap * lap, FOCUS_BLOCK_PX)
+    energy = _reduced(np.square(lap, out=lap), FOCUS_BLOCK_PX)
     energy = cv2.GaussianBlur(energy, (0, 0), FOCUS_SIGMA_PX / FOCUS_BLOCK_PX)
     return np.sqrt(np.maximum(energy, 0.0))
 
