@@ -79,6 +79,7 @@ def report(results: dict, args, checkouts) -> str:
         + ", ".join(f"`{name}` = {path}" for name, path in checkouts.items())
         + ".",
         "",
+        *([f"**Note:** {args.note}", ""] if args.note else []),
         "| stack | command | wall s | CPU s | peak RSS MiB |",
         "| --- | --- | --- | --- | --- |",
     ]
@@ -114,6 +115,7 @@ def main() -> int:
     parser.add_argument(
         "--baseline", type=Path, help="another flexdof checkout, run in the same rounds"
     )
+    parser.add_argument("--note", help="a line for the report (e.g. what the baseline is)")
     args = parser.parse_args()
     if args.rounds < 1:
         parser.error("--rounds must be >= 1")
