@@ -97,6 +97,27 @@ def test_noise_sigma_ignores_saturated_blocks():
     assert dc.estimate_noise_sigma(y, saturation=1.0) == pytest.approx(0.01, rel=0.15)
 
 
+@pytest.mark.parametrize(
+    "values",
+    [
+        np.abs(np.random.default_rng(0).normal(size=262_144)),  # Haar coefficients' shape
+        np.round(np.random.default_rng(1).random(100_001) * 20) / 20,  # ties, odd count
+        np.sort(np.random.default_rng(2).random(50_000)),  # a regular sample of a sorted array
+        np.tile(np.random.default_rng(3).random(7), 20_000),  # periodic: the sample misses
+        np.r_[np.random.default_rng(4).random(30_000), np.inf, np.inf],
+        np.r_[np.random.default_rng(5).random(30_000), np.nan],
+        np.random.default_rng(6).random(999),  # small: np.median itself
+    ],
+)
+def test_exact_median_is_np_median(values):
+    """The noise estimates' median (a bracketed partition) is np.median's number."""
+    from pipeline.core.deconvolve.common import exact_median
+
+    want = np.median(values)
+    got = exact_median(values.copy())
+    assert got == want or (np.isnan(want) and np.isnan(got))
+
+
 # ----------------------------------------------------------------------------- hard cases
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("size", [1, 5])

@@ -335,3 +335,20 @@ def test_kernels_are_valid_and_analytic_equals_numeric(
     assert_kernel(analytic)
     assert_kernel(numeric)
     assert np.abs(analytic - numeric).sum() < 2e-3
+
+
+@pytest.mark.parametrize("diameter", [0.0, 0.5, 1.0, 2.9, 7.0, 20.0, 57.3, 99.5])
+def test_pillbox_raster_is_its_reach_zero_padded(diameter):
+    """A pillbox raster is computed over its reach and zero-padded (the stack kernel adds
+    each over its reach only): the same bits as the raster at every larger half-size,
+    and nothing beyond the reach."""
+    reach = psf.raster_reach("pillbox", diameter, 60)
+    small = psf.raster_pillbox(diameter, reach)
+    for half in (reach, reach + 1, 60):
+        big = psf.raster_pillbox(diameter, half)
+        edge = half - reach
+        assert np.array_equal(big[edge : big.shape[0] - edge, edge : big.shape[1] - edge], small)
+        assert big.sum() == pytest.approx(1.0)
+        inner = np.zeros_like(big, bool)
+        inner[edge : big.shape[0] - edge, edge : big.shape[1] - edge] = True
+        assert not np.any(big[~inner])

@@ -103,3 +103,36 @@ def test_batched_dissimilarities_equal_the_full_plane_eq8(n):
     batched = spectra.dissimilarities(kernels, reference, n=n)
     single = [spectra.dissimilarity(k, reference, n=n) for k in kernels]
     np.testing.assert_allclose(batched, single, rtol=1e-12)
+
+
+@pytest.mark.parametrize("n", [None, 64, 66])
+def test_symmetric_kernels_quarter_plane_equals_full_plane_eq8(n):
+    """Kernels symmetric in both axes take the quarter-plane DCT path (a focal stack's
+    per-depth kernels); it must give the full-plane numbers: a wrong multiplicity of the
+    zero or Nyquist rows/columns, or a shifted quadrant, changes them by 1e-3 or more."""
+    rng = np.random.default_rng(9)
+    quadrants = rng.random((4, 6, 5)) ** 3
+    kernels = np.concatenate([quadrants[:, :0:-1], quadrants], axis=1)  # mirror rows
+    kernels = np.concatenate([kernels[:, :, :0:-1], kernels], axis=2)  # ... and columns
+    kernels /= kernels.sum(axis=(1, 2), keepdims=True)
+    reference = kernels.mean(axis=0)
+    batched = spectra.dissimilarities(kernels, reference, n=n)
+    single = [spectra.dissimilarity(k, reference, n=n) for k in kernels]
+    np.testing.assert_allclose(batched, single, rtol=1e-12)
+
+
+@pytest.mark.parametrize("shape", [(64, 64), (50, 70), (1024, 1024)])
+def test_centred_rfft_over_the_kernels_rows_is_rfft2_bit_for_bit(shape):
+    """centred_fft(real=True) transforms only the kernel's own rows (the others are 0):
+    the same bits as rfft2 of the whole grid, in float64 and float32."""
+    rng = np.random.default_rng(10)
+    kernel = rng.random((31, 17))
+    for dtype in (np.float64, np.float32):
+        grid = np.zeros(shape, dtype)
+        rows = (np.arange(31) - 15) % shape[0]
+        cols = (np.arange(17) - 8) % shape[1]
+        grid[np.ix_(rows, cols)] = kernel
+        got = spectra.centred_fft(kernel, shape, real=True, dtype=dtype)
+        want = sfft.rfft2(grid)
+        assert got.dtype == want.dtype
+        assert np.array_equal(got, want)

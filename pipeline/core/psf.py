@@ -221,7 +221,9 @@ def _mirror_quadrant(quadrant: np.ndarray) -> np.ndarray:
 
 
 def _disk_quadrant_area(x: np.ndarray, y: np.ndarray, radius: float) -> np.ndarray:
-    """Area of the disk of ``radius`` (centred at 0) inside ``[0, x] x [0, y]``, x, y >= 0."""
+    """Area of the disk of ``radius`` (centred at 0) inside ``[0, x] x [0, y]``, x, y >= 0
+    (arrays broadcast: a row of ``x`` and a column of ``y`` give the grid, with the terms
+    of ``x`` alone computed once per column)."""
     x = np.minimum(x, radius)
     y = np.minimum(y, radius)
 
@@ -241,15 +243,34 @@ def raster_pillbox(diameter_px: float, half: int) -> np.ndarray:
     if diameter_px <= 1e-12:
         return _delta(half)
     radius = 0.5 * diameter_px
-    edges = np.arange(half + 2) - 0.5
+    # Pixel edges past the disk clamp to the radius, so their cumulative areas are equal
+    # and the pixels there exactly 0: the disk is rasterised out to its reach only and
+    # zero-padded (the same values; a ninth of the work for a disk of half the kernel's
+    # width, as most of a focal stack's are).
+    reach = raster_reach("pillbox", diameter_px, half)
+    edges = np.arange(reach + 2) - 0.5
     edges[0] = 0.0
-    grid_x, grid_y = np.meshgrid(edges, edges)
-    cumulative = _disk_quadrant_area(grid_x, grid_y, radius)
+    cumulative = _disk_quadrant_area(edges[None, :], edges[:, None], radius)
     quadrant = np.diff(np.diff(cumulative, axis=0), axis=1)
     quadrant[0, :] *= 2  # the centre row/column straddle the axes: their halves mirror
     quadrant[:, 0] *= 2
     kernel = np.clip(_mirror_quadrant(quadrant), 0.0, None)  # rounding leaves -1e-17s
-    return kernel / (np.pi * radius**2)
+    kernel /= np.pi * radius**2
+    return kernel if reach == half else np.pad(kernel, half - reach)
+
+
+def raster_reach(model: str, diameter_px: float, half: int) -> int:
+    """The half-size beyond which a ``2 half + 1`` raster of Eq. 3 or 4 is exactly 0.
+
+    ``raster_lens_psf(model, d, half)`` is ``raster_lens_psf(model, d, reach)``
+    zero-padded to ``half``, so a sum of many rasters (:func:`pipeline.core.stack_kernel.
+    focal_stack_psf`) can add each over its reach only. A pillbox reaches the pixels its
+    disk touches (at most ``ceil(d / 2 + 0.5)``, :func:`kernel_size`); a Gaussian has no
+    edge.
+    """
+    if model == "pillbox":
+        return min(half, math.ceil(0.5 * diameter_px + 0.5))
+    return half
 
 
 def raster_gaussian(diameter_px: float, half: int, *, gaussian_g: float = 1.0) -> np.ndarray:

@@ -10,7 +10,7 @@ import numpy as np
 from pipeline.core import optics, psf, spectra
 from pipeline.core.lens import Lens
 from pipeline.core.motion import constant_speed
-from pipeline.core.psf import _normalise, _resolve_size, raster_lens_psf
+from pipeline.core.psf import _normalise, _resolve_size, raster_lens_psf, raster_reach
 from pipeline.errors import InputError
 
 
@@ -58,14 +58,24 @@ def focal_stack_psf(
     cache: dict[float, np.ndarray] = {}
 
     def raster(b: float) -> np.ndarray:
+        """The raster of blur ``b`` over its reach only (zero beyond, :func:`raster_reach`):
+        a pillbox of the stack's mean blur covers a quarter of the kernel."""
         key = round(b, 6)
         if key not in cache:
-            cache[key] = raster_lens_psf(model, b, half, gaussian_g)
+            cache[key] = raster_lens_psf(model, b, raster_reach(model, b, half), gaussian_g)
         return cache[key]
 
-    per_position = np.array(
-        [_normalise(sum(wi * raster(b) for wi, b in zip(w, row))) for row in blurs]
-    )
+    def blurred(row: np.ndarray) -> np.ndarray:
+        """``sum_i w_i P(b_i)``, each raster added in order over its reach (adding the
+        zeros beyond would change no bit)."""
+        total = np.zeros((2 * half + 1, 2 * half + 1))
+        for wi, b in zip(w, row):
+            part = raster(b)
+            edge = half - part.shape[0] // 2
+            total[edge : total.shape[0] - edge, edge : total.shape[1] - edge] += wi * part
+        return _normalise(total)
+
+    per_position = np.array([blurred(row) for row in blurs])
     return _normalise(per_position.mean(axis=0)), per_position
 KERNEL_VARIANCE_SPREAD = 0.1  # Eq. 8 spread of per-depth kernels above which Wiener uses it
 

@@ -198,20 +198,24 @@ def stages_of(cmd: list[str]) -> dict:
 def stage_table(results: dict) -> list[str]:
     """Median stage times (s, from the sidecars) of each flexdof command, per stack."""
     lines = ["", "Stages (median s, from each run's sidecar; `read` is summed over threads):", ""]
-    header = None
+    # every stage any command reports, in the order they first appear (a stage a command
+    # does not run, e.g. frame_guard without --frame-guard, is shown as nan)
+    header = {}
+    for res in results.values():
+        for runs in res["runs"].values():
+            for m in runs:
+                header.update(dict.fromkeys(m.get("stages_s", {})))
+    if not header:
+        return []
+    lines += [f"| stack | command | {' | '.join(header)} |", "|---" * (len(header) + 2) + "|"]
     for name, res in results.items():
         for cmd, runs in res["runs"].items():
             stages = [m["stages_s"] for m in runs if m.get("stages_s")]
             if not stages:
                 continue
-            keys = list(stages[0])
-            if header is None:
-                header = keys
-                lines += [f"| stack | command | {' | '.join(keys)} |"]
-                lines += ["|---" * (len(keys) + 2) + "|"]
             row = [statistics.median(s.get(k, float("nan")) for s in stages) for k in header]
             lines.append(f"| {name} | {cmd} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
-    return lines if header else []
+    return lines
 
 
 def summary(values: list[float]) -> dict:
