@@ -53,18 +53,22 @@ def commands(frames: list[str], tmp: Path, checkouts: dict[str, Path], threads: 
     return cmds
 
 
-def guard_ratios(runs: dict[str, list[dict]], checkouts) -> dict:
-    """Per checkout, guard/default of wall and CPU time: paired (per round) and of medians."""
+def ratio(runs: dict[str, list[dict]], top: str, bottom: str) -> dict:
+    """``top``/``bottom`` of wall and CPU time: paired (per round) and of medians."""
     out = {}
-    for name in checkouts:
-        default, guard = runs[f"{name} default"], runs[f"{name} guard"]
-        for key in ("wall_s", "cpu_s"):
-            paired = [g[key] / d[key] for g, d in zip(guard, default)]
-            medians = [statistics.median(m[key] for m in ms) for ms in (guard, default)]
-            out[f"{name} {key}"] = {
-                "paired": peer.summary(paired),
-                "of_medians": medians[0] / medians[1],
-            }
+    for key in ("wall_s", "cpu_s"):
+        paired = [a[key] / b[key] for a, b in zip(runs[top], runs[bottom])]
+        medians = [statistics.median(m[key] for m in runs[name]) for name in (top, bottom)]
+        out[key] = {"paired": peer.summary(paired), "of_medians": medians[0] / medians[1]}
+    return out
+
+
+def ratios(runs: dict[str, list[dict]], checkouts) -> dict:
+    """Guard/default per checkout and, with a baseline, this default/base default."""
+    out = {f"{name} guard/default": ratio(runs, f"{name} guard", f"{name} default")
+           for name in checkouts}  # fmt: skip
+    if "base" in checkouts:
+        out["default this/base"] = ratio(runs, "this default", "base default")
     return out
 
 
@@ -91,15 +95,16 @@ def report(results: dict, args, checkouts) -> str:
             )
     lines += [
         "",
-        f"Guard/default: median of the per-round (paired) ratios [min-max]; ratio of medians "
-        f"(target: wall <= {TARGET}).",
+        "Ratios: median of the per-round (paired) ratios [min-max]; ratio of medians. "
+        f"Guard/default per checkout (target: wall <= {TARGET}); with a baseline, this "
+        f"checkout's default path against the baseline's (issue 13: at most {TARGET}).",
         "",
-        "| stack | checkout | wall paired | wall of medians | CPU paired | CPU of medians |",
+        "| stack | ratio | wall paired | wall of medians | CPU paired | CPU of medians |",
         "| --- | --- | --- | --- | --- | --- |",
     ]
     for stack, res in results.items():
-        for name in checkouts:
-            wall, cpu = res["guard_ratios"][f"{name} wall_s"], res["guard_ratios"][f"{name} cpu_s"]
+        for name, r in res["ratios"].items():
+            wall, cpu = r["wall_s"], r["cpu_s"]
             lines.append(
                 f"| {stack} | {name} | {peer.fmt(wall['paired'])} | {wall['of_medians']:.2f} | "
                 f"{peer.fmt(cpu['paired'])} | {cpu['of_medians']:.2f} |"
@@ -139,7 +144,7 @@ def main() -> int:
                 "frames": len(frames),
                 "runs": runs,
                 "commands": peer.summarise(runs)["commands"],
-                "guard_ratios": guard_ratios(runs, checkouts),
+                "ratios": ratios(runs, checkouts),
             }
     env["loadavg_end"] = os.getloadavg()
     md = report(results, args, checkouts)
