@@ -246,8 +246,9 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         dest="frame_range",
         action="store_const",
         const=False,
-        help="keep values outside the aligned frames' range (the paper's linear result; by "
-        "default the result is clipped to the frames' 3x3 range: no rims or dark moats)",
+        help="the paper's linear result as it is (by default, where every aligned frame is flat "
+        "the result's fine band is taken from their average, and the result is clipped to the "
+        "frames' 3x3 range: no amplified noise in flat areas, no rims or dark moats)",
     )
     parser.add_argument(
         "--max-pixels",

@@ -17,14 +17,15 @@ The per-pixel range and the sharpest frame are streamed beside the weighted sum
 (:class:`FrameSupport`, merged like the sum), so memory stays flat in the frame count.
 Wiener's noise is also held to a share of one frame's (:func:`noise_ceiling`).
 
-The clip is the main job's default (only the range is streamed for it; ``--no-frame-range``
-turns it off): on the four real stacks it removes every halo loss to focus-stack (27 of
-36 regions lost before) and makes edges sharper, and on stacks that follow the paper's
-model it never costs more than 0.05 dB (+0.1-0.4 dB on the three-plane scenes). The
-rest is ``flexdof stack --frame-guard``: on the real stacks it brings the regions as good
-as focus-stack's on every measure to 6-8 of 9, but on stacks that follow the model it
-costs up to 1.2 dB (3.8 dB with a fitted, doubled blur span) and more time
-(``tests/benchmarks/results/real_regions/NOTE.md``).
+The clip, after :func:`quiet_flat_areas` (where every frame is flat, the result's fine
+band comes from the average), is the main job's default: only the range is streamed for
+it; ``--no-frame-range`` turns both off. On the four real stacks of issue 13 they took
+the regions as good as focus-stack's on every measure from 0/0/0/0 to 0/8/4/7 of 9 (halo
+losses 27 -> 0 of 36, flat-area noise losses 34 -> 0), and on stacks that follow the
+paper's model they cost at most 0.01 dB (+0.1-0.4 dB on the three-plane scenes). The
+rest is ``flexdof stack --frame-guard``: 6-8 of 9 regions on the real stacks, but on
+stacks that follow the model 0.5-1.3 dB below the default (4.2 dB with a fitted, doubled
+blur span) and 1.2-1.4x the time (``tests/benchmarks/results/real_regions/NOTE.md``).
 """
 
 from __future__ import annotations
