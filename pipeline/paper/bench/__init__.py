@@ -22,6 +22,7 @@ from pipeline.paper.bench.scenes import Prepared, edges_scene, prepare, scene_le
 from pipeline.paper.bench.suites import (
     alignment_rows,
     deconvolution_rows,
+    frame_support_rows,
     ipsf_rows,
     sampling_rows,
     simulation_rows,
@@ -41,6 +42,7 @@ __all__ = [
     "default_of",
     "dominated_defaults",
     "edges_scene",
+    "frame_support_rows",
     "ipsf_rows",
     "oriented",
     "pareto_front",

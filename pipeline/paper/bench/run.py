@@ -14,6 +14,8 @@ ground truth, and each setting's error and time are measured in the same run:
 * Alignment (Sec. 9): none / analytic / estimated at several matching resolutions.
   Error: corner reprojection error against the true magnification ``p_i / p_ref``, and
   PSNR of the final EDOF image.
+* Keeping to the frames (issue 13): the main job as it is, kept to the frames' range (the
+  default) or with ``--frame-guard``. Error: PSNR of the final EDOF image.
 * Deconvolution (Sec. 4.2): method, iterations, regularisation, kernel variance,
   tile size and overlap, float32 vs float64, kernel truncation. Error: PSNR of the
   final EDOF image against the all-in-focus ground truth.
@@ -48,6 +50,7 @@ from pipeline.paper.bench.scenes import MOTORCYCLE, edges_scene, prepare, scene_
 from pipeline.paper.bench.suites import (
     alignment_rows,
     deconvolution_rows,
+    frame_support_rows,
     ipsf_rows,
     sampling_rows,
     simulation_rows,
@@ -93,6 +96,8 @@ def run_accuracy(
         prepared = [prepare(name, d, t) for name, (d, t) in stacks.items()]
         progress("alignment")
         rows += alignment_rows(config, [p for p in prepared if p.name != "edges-clean"], work)
+        progress("keeping to the frames")
+        rows += frame_support_rows(config, prepared, work)
         for prep in prepared:
             progress(f"deconvolution: {prep.name}")
             rows += deconvolution_rows(config, prep)

@@ -215,6 +215,35 @@ def _alignment_rows(config: Config, prep: Prepared, work: Path) -> list[Row]:
     return time_runs(pending, config.repeats)
 
 
+def frame_support_rows(config: Config, prepared: Sequence[Prepared], work: Path) -> list[Row]:
+    """The main job as it is (``--no-frame-range``), kept to the frames' range (the default:
+    flat areas' fine band from the average, then the clip) and with ``--frame-guard``:
+    final PSNR and the whole run's time (issue 13)."""
+    settings = (
+        ("none (--no-frame-range)", {"frame_range": False}, False),
+        ("frame range", {}, True),
+        ("--frame-guard", {"frame_guard": True}, False),
+    )
+    pending = []
+    for prep in prepared:
+        for label, extra, default in settings:
+            final = partial(
+                Row, "frames", "keeping to the frames (final PSNR)", prep.name, label, default,
+                "psnr_db",
+            )  # fmt: skip
+            options = StackOptions(encoding="float32", **extra)
+            out = work / f"frames-{prep.name}-{len(pending)}.tif"
+            pending.append(
+                PendingRun(
+                    partial(process_stack, prep.directory, out, options),
+                    lambda seconds, result, final=final, prep=prep: final(
+                        psnr(result.image, prep.truth), seconds, "", "whole flexdof stack run"
+                    ),
+                )
+            )
+    return time_runs(pending, config.repeats)
+
+
 # ----------------------------------------------------------------------------- deconvolution
 def deconvolution_rows(config: Config, prep: Prepared) -> list[Row]:
     """Method, iterations, regularisation, kernel variance, tiles, dtype, kernel size."""
