@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -258,3 +259,18 @@ def test_quiet_flat_areas_takes_the_averages_fine_band_where_every_frame_is_flat
     low = ndimage.gaussian_filter(out, 4.0)[flat]  # the restored low frequencies stayed
     np.testing.assert_allclose(low, ndimage.gaussian_filter(restored, 4.0)[flat], atol=1.5e-3)
     np.testing.assert_array_equal(out[textured], restored[textured])  # detail: untouched
+
+
+@pytest.mark.parametrize("level", [1.0, 3.0])  # white, and beyond it (a float stack's units)
+def test_quiet_flat_areas_leaves_what_is_at_or_beyond_white(level):
+    rng = np.random.default_rng(4)
+    shape = (64, 160)
+    base = np.full(shape, 0.3, np.float32)
+    base[:, 96:] = level  # flat too, but where the codes end
+    frames = [base.copy() for _ in range(3)]
+    support = _streamed(frames, [0, 1, 2], full=False)
+    restored = base + rng.normal(0, 0.02, shape).astype(np.float32)
+    out, _ = fs.quiet_flat_areas(restored.copy(), base, support)
+    np.testing.assert_array_equal(out[:, 96:], restored[:, 96:])
+    fine = out[8:-8, 8:56] - cv2.GaussianBlur(out, (0, 0), 2.0)[8:-8, 8:56]
+    assert np.std(fine) < 0.1 * 0.02  # below white, far from the step: quieted

@@ -283,8 +283,10 @@ def quiet_flat_areas(
     frequencies the deconvolution restored (haze, Sec. 4.1's ends) stay. Issue 13:
     on the four real stacks flat-area noise went from 0 to 34 of 34 regions as good
     as focus-stack's, with no region losing sharpness or haze; on the synthetic scenes
-    -0.1 to +0.3 dB. In place; returns the image and the fraction of pixels replaced
-    over half.
+    -0.1 to +0.3 dB. Blocks where a frame reaches white (the codes' end) are never judged
+    flat: beyond it the frames' range knows nothing (blown highlights, float frames in
+    other units). In place; returns the image and the fraction of pixels replaced over
+    half.
     """
     sigma_px, window_px = FLAT_BAND_PX
     detail = None
@@ -294,6 +296,13 @@ def quiet_flat_areas(
         detail = energy if detail is None else np.maximum(detail, energy)
     low, high = FLAT_DETAIL
     alpha = np.clip((np.float32(high) - detail) / np.float32(high - low), 0.0, 1.0)
+    # at or beyond white in some frame the codes end, and with them what the range knows
+    # (blown highlights; float frames in other units): not judged flat there
+    top = _channels(support.high.reshape(image.shape))
+    beyond = top[0] == CODE_MAX
+    for channel in top[1:]:
+        beyond |= channel == CODE_MAX
+    alpha[_reduced(beyond.astype(np.float32), ENERGY_BLOCK_PX) > 0] = 0.0
     alpha = cv2.GaussianBlur(alpha, (0, 0), FLAT_BLEND_PX / ENERGY_BLOCK_PX)
     alpha = cv2.resize(alpha, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR)
     if image.ndim == 3:
