@@ -15,6 +15,7 @@ grey, mean-normalised frames.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import cv2
@@ -41,6 +42,43 @@ def _pairs(n: int) -> list[tuple[int, int]]:
     """
     steps = {1, 2} if n < 4 else {2, 3, max(2, n // 3)}
     return [(i, i + s * d) for i in range(n) for s in steps for d in (-1, 1) if 0 <= i + s * d < n]
+
+
+MIN_MASK_PX = 50  # fewer pixels where a frame is the sharpest say nothing of its blur
+
+
+def _sharpest_masks(frames):
+    """Mean-normalised grey frames, the sharpest frame per pixel, and per frame the
+    textured pixels (the 30% best in focus) 5% or more from the borders where it is
+    the sharpest."""
+    grey = [np.asarray(f, np.float32) / max(float(np.mean(f)), 1e-12) for f in frames]
+    focus = np.stack([_focus_measure(g) for g in grey])
+    sharpest = np.argmax(focus, axis=0)
+    best = focus.max(axis=0)
+    textured = best > np.percentile(best, 70)
+    border = max(4, int(0.05 * min(grey[0].shape)))
+    interior = np.zeros_like(textured)
+    interior[border:-border, border:-border] = True
+    return grey, sharpest, [(sharpest == i) & textured & interior for i in range(len(grey))]
+
+
+def _predict(grey: np.ndarray, diameter_px: float) -> np.ndarray:
+    """``grey`` blurred by a pillbox of ``diameter_px`` (Eq. 3)."""
+    pillbox = raster_pillbox(diameter_px, kernel_size(diameter_px) // 2).astype(np.float32)
+    return cv2.filter2D(grey, -1, pillbox, borderType=cv2.BORDER_REFLECT_101)
+
+
+def _best_on_grid(cost, grid: np.ndarray) -> tuple[float, int]:
+    """The minimum of ``cost`` over a log-spaced ``grid``, refined by a parabola through
+    the best three in ``log``; and the index of the best grid point."""
+    costs = np.array([cost(d) for d in grid])
+    k = int(np.argmin(costs))
+    if 0 < k < grid.size - 1:
+        lx = np.log(grid[k - 1 : k + 2])
+        a, b, _ = np.polyfit(lx, costs[k - 1 : k + 2], 2)
+        estimate = float(np.exp(-b / (2 * a))) if a > 0 else float(grid[k])
+        return float(np.clip(estimate, grid[k - 1], grid[k + 1])), k
+    return float(grid[k]), k
 
 
 def estimate_blur_span(
@@ -77,39 +115,104 @@ def estimate_blur_span(
     if span <= 0:
         raise InputError("all frames have the same focus position: no defocus to measure")
     x = (x - x.min()) / span
-    grey = [np.asarray(f, np.float32) / max(float(np.mean(f)), 1e-12) for f in frames]
-    focus = np.stack([_focus_measure(g) for g in grey])
-    sharpest = np.argmax(focus, axis=0)
-    best = focus.max(axis=0)
-    textured = best > np.percentile(best, 70)
-    border = max(4, int(0.05 * min(grey[0].shape)))
-    interior = np.zeros_like(textured)
-    interior[border:-border, border:-border] = True
-    masks = [(sharpest == i) & textured & interior for i in range(n)]
-    pairs = [(i, j) for i, j in _pairs(n) if masks[i].sum() > 50]
+    grey, _, masks = _sharpest_masks(frames)
+    pairs = [(i, j) for i, j in _pairs(n) if masks[i].sum() > MIN_MASK_PX]
     if not pairs:
         raise InputError("no textured, in-focus regions to measure the defocus from")
 
     def cost(span_px: float) -> float:
         total, count = 0.0, 0
         for i, j in pairs:
-            diameter = span_px * abs(x[i] - x[j]) / downscale
-            pillbox = raster_pillbox(diameter, kernel_size(diameter) // 2).astype(np.float32)
-            predicted = cv2.filter2D(grey[i], -1, pillbox, borderType=cv2.BORDER_REFLECT_101)
+            predicted = _predict(grey[i], span_px * abs(x[i] - x[j]) / downscale)
             residual = (predicted - grey[j])[masks[i]]
             total += float(np.dot(residual, residual))
             count += residual.size
         return total / count
 
     grid = np.geomspace(2.0, max_span_px, 14)
-    costs = np.array([cost(d) for d in grid])
-    k = int(np.argmin(costs))
-    if 0 < k < grid.size - 1:  # parabola through the best three in log(D)
-        lx = np.log(grid[k - 1 : k + 2])
-        a, b, _ = np.polyfit(lx, costs[k - 1 : k + 2], 2)
-        estimate = float(np.exp(-b / (2 * a))) if a > 0 else float(grid[k])
-        estimate = float(np.clip(estimate, grid[k - 1], grid[k + 1]))
-    else:
-        estimate = float(grid[k])
+    estimate, k = _best_on_grid(cost, grid)
+    if k in (0, grid.size - 1):
         log.warning("blur span at the edge of the search (%.1f px); check the stack", estimate)
     return estimate
+
+
+@dataclasses.dataclass(frozen=True)
+class EndDepth:
+    """Content in focus in an end frame that lies beyond the stack's focus range.
+
+    Attributes
+    ----------
+    frame : int
+        The end frame (first or last in focus position).
+    beyond : float
+        How far beyond that frame the content is focused, as a fraction of the stack's
+        focus range (0: at the frame).
+    pixels : int
+        Pixels (at the fit's resolution) where the frame is the sharpest and textured.
+    """
+
+    frame: int
+    beyond: float
+    pixels: int
+
+
+def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0):
+    """How far beyond each end of an aligned focal stack its end frames' content lies,
+    and the sharpest frame per pixel (at the frames' resolution).
+
+    Where frame ``e`` at an end is the sharpest, its content is focused at ``x_e -
+    beyond`` (outside the stack's range ``[0, 1]``), so frame ``e`` itself sees it
+    blurred by ``D beyond`` and a frame ``j`` at ``dx = |x_j - x_e|`` by ``D (dx +
+    beyond)``. Blur adds in variance under convolution (a pillbox of diameter ``d`` has
+    variance ``d^2 / 16`` per axis), so predicting frame ``j`` from ``e`` needs a pillbox
+    of ``d^2 = D^2 ((dx + beyond)^2 - beyond^2)``, whence ``beyond = (d^2 / D^2 - dx^2)
+    / (2 dx)``. ``d`` is fitted as in :func:`estimate_blur_span`, for the three frames
+    nearest the end; the median of their ``beyond`` is kept, clipped to ``[0, 0.5]``
+    (content inside the range reads <= 0). Sec. 4.1: the IPSF of such a depth is wider
+    than the stack's, whose kernel leaves it soft (issue 13: pcb7's far barcode).
+
+    Parameters
+    ----------
+    frames : list of 2-D float arrays
+        Aligned grey frames (reduced resolution is fine).
+    positions : array_like, shape (n,)
+        Focus positions, in any coordinate linear in image distance.
+    span_px : float
+        The blur span ``D`` (full-resolution px).
+    downscale : float
+        Full-resolution size / the frames' size.
+
+    Returns
+    -------
+    ends : list of EndDepth
+        The two ends (one for a two-frame stack's each frame).
+    sharpest : ndarray of int
+        The sharpest frame per pixel (by the local energy of the Laplacian).
+    """
+    x = np.asarray(positions, dtype=np.float64)
+    if len(frames) < 2 or x.size != len(frames) or np.ptp(x) <= 0 or not span_px > 0:
+        raise InputError("need >= 2 frames at different focus positions and a blur span > 0")
+    x = (x - x.min()) / np.ptp(x)
+    grey, sharpest, masks = _sharpest_masks(frames)
+    order = np.argsort(x, kind="stable")
+    ends = []
+    for end, others in ((order[0], order[1:4]), (order[-1], order[-2:-5:-1])):
+        mask = masks[end]
+        beyond = []
+        if mask.sum() > MIN_MASK_PX:
+            for j in others:
+                dx = abs(x[j] - x[end])
+
+                def cost(d, source=grey[end], target=grey[j], mask=mask):
+                    residual = (_predict(source, d) - target)[mask]
+                    return float(np.dot(residual, residual)) / residual.size
+
+                # from half the blur of content at the end frame to that of content
+                # half the range beyond it (d^2 = D^2 (dx^2 + dx)), at the fit's scale
+                near, far = span_px * dx / downscale, span_px * np.sqrt(dx * dx + dx) / downscale
+                d, _ = _best_on_grid(cost, np.geomspace(max(0.3, 0.5 * near), far, 12))
+                d *= downscale
+                beyond.append((d * d / (span_px * span_px) - dx * dx) / (2 * dx))
+        value = float(np.clip(np.median(beyond), 0.0, 0.5)) if beyond else 0.0
+        ends.append(EndDepth(int(end), value, int(mask.sum())))
+    return ends, sharpest

@@ -99,6 +99,46 @@ def positions_from_scales(scales: np.ndarray) -> tuple[np.ndarray, str]:
 
 
 # ----------------------------------------------------------------------------- kernels
+def _blur_model(positions: np.ndarray, *, lens: Lens | None, absolute: bool, blur_span_px):
+    """``blur(frame_positions, x)``: the blur diameter (px) in each frame of a point focused
+    at ``x``. With a lens and absolute image distances ``a |x - p_i| / x`` (Eq. 2), else
+    ``D |x - p_i|`` over the stack's range with the blur span ``D``."""
+    if lens is not None and absolute:
+        def blur(p, v):
+            return lens.blur_px(v, p)  # Eq. 2
+
+        return blur
+    if blur_span_px is None:
+        raise InputError("internal: no blur span for a stack without absolute positions")
+    width = max(np.ptp(positions), 1e-300)
+
+    def blur(p, x):
+        return blur_span_px * np.abs(p - x) / width
+
+    return blur
+
+
+def depth_kernel(
+    positions: np.ndarray,
+    weights: np.ndarray,
+    x: float,
+    *,
+    lens: Lens | None,
+    absolute: bool,
+    blur_span_px: float | None,
+) -> np.ndarray:
+    """The weighted average's PSF for a point focused at ``x`` (the discrete Eq. 5,
+    ``sum_i w_i P(b(p_i, x))``), which may lie outside the frames' range: the kernel of
+    one depth, where :func:`stack_kernel` averages over the range's depths."""
+    blur = _blur_model(positions, lens=lens, absolute=absolute, blur_span_px=blur_span_px)
+    diameters = np.asarray(blur(positions, x), dtype=np.float64)
+    model = lens.psf_model if lens else "pillbox"
+    g = lens.gaussian_g if lens else 1.0
+    half = _resolve_size(None, float(diameters.max()), model, g) // 2
+    total = sum(w * raster_lens_psf(model, d, half, g) for w, d in zip(weights, diameters))
+    return _normalise(total)
+
+
 def stack_kernel(
     positions: np.ndarray,
     weights: np.ndarray,
@@ -117,20 +157,8 @@ def stack_kernel(
     """
     model = lens.psf_model if lens else "pillbox"
     g = lens.gaussian_g if lens else 1.0
-    if lens is not None and absolute:
-        def blur(p, v):
-            return lens.blur_px(v, p)  # Eq. 2
-
-        span = float(blur(positions.max(), positions.min()))
-    else:
-        if blur_span_px is None:
-            raise InputError("internal: no blur span for a stack without absolute positions")
-        width = max(np.ptp(positions), 1e-300)
-
-        def blur(p, x):
-            return blur_span_px * np.abs(p - x) / width
-
-        span = float(blur_span_px)
+    blur = _blur_model(positions, lens=lens, absolute=absolute, blur_span_px=blur_span_px)
+    span = float(blur(positions.max(), positions.min()))
     kernel, per_position = focal_stack_psf(positions, weights, blur, model=model, gaussian_g=g)
     summary = {"size": int(kernel.shape[0]), "source": "stack-average", "blur_span_px": span}
     if lens is not None and absolute and np.ptp(positions) > 0:

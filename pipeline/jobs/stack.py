@@ -41,6 +41,7 @@ from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
+from pipeline.jobs.ends import end_kernels, restore_ends
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import (
     RESCALE_ABOVE,
@@ -389,29 +390,37 @@ def process_stack(
     # The IPSF needs only the previews and the positions, the average only the frames:
     # the blur-span fit and the kernel run beside the accumulation (issue 15; a failed
     # fit is reported once the accumulation ends).
-    fit = None  # the aligned previews at the fit's resolution (the full ones are dropped)
-    if needs_fit:
-        fit = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+    small = None  # the aligned previews at the fit's resolution (the full ones are dropped)
+    want_ends = options.frame_range and not options.frame_guard
+    if aligned.previews is not None and (needs_fit or want_ends):
+        small = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
     aligned.previews = None  # not needed past the alignment: memory flat in the frame count
     with ThreadPoolExecutor(1, thread_name_prefix="flexdof-kernel") as pool:
         kernel_job = pool.submit(
-            _stack_ipsf, aligned, weights, blur_span, fit, options.frame_guard
+            _stack_ipsf,
+            aligned,
+            weights,
+            blur_span,
+            small if needs_fit else None,
+            options.frame_guard,
+            ends=small if want_ends else None,
         )
         average, clipped, frames = accumulate(
             aligned, weights, options, progress=progress, support=_support(options)
         )
-        kernel, kernel_samples, kernel_summary = kernel_job.result()
+        kernel, kernel_samples, kernel_summary, beyond = kernel_job.result()
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
     ceiling = noise_ceiling(frames, average, clipped) if options.frame_guard else None
+    source = _describe_frames(stack)
     result = restore_image(
         average,
         kernel,
         options,
         clipped=clipped,
         kernel_samples=kernel_samples,
-        source=_describe_frames(stack),
+        source=source,
         max_noise=ceiling,
     )
     timings["deconvolve"] = time.perf_counter() - t0
@@ -426,10 +435,18 @@ def process_stack(
             "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
     elif frames is not None:
+
+        def deconvolve_part(part, end_kernel, rows, cols):
+            box = clipped[rows, cols]
+            return restore_image(part, end_kernel, options, clipped=box, source=source)
+
+        ends = restore_ends(result, average, beyond, deconvolve_part)
+        for end in ends:
+            end["frame"] = stack.files[end["frame"]].name
         result, flat = quiet_flat_areas(result, average, frames)
         result = clip_to_frames(result, frames, clipped)  # last: nothing leaves the range
         timings["frame_range"] = time.perf_counter() - t0
-        sidecar["frame_range"] = {"flat_fraction": round(flat, 4)}
+        sidecar["frame_range"] = {"flat_fraction": round(flat, 4), "beyond_ends": ends}
     progress("deconvolve", 1, 1)
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
@@ -449,11 +466,16 @@ def _stack_ipsf(
     blur_span: float | None,
     fit,
     frame_guard: bool = False,
+    *,
+    ends=None,
 ):
     """The stack's IPSF (:func:`stack_kernel`, Eqs. 5-6), after measuring the blur span
     (:func:`pipeline.core.defocus.estimate_blur_span`) on ``fit``, the aligned previews
     at the fit's resolution and their downscale factor, when given. With the frame
-    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``."""
+    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``. With ``ends`` (the same
+    previews), also the kernels of content beyond the range's ends
+    (:func:`pipeline.jobs.ends.end_kernels`; else none). Returns the kernel, its
+    per-depth samples, its summary and the end kernels."""
     t0 = time.perf_counter()
     if fit is not None:
         small, factor = fit
@@ -470,15 +492,25 @@ def _stack_ipsf(
         log.info("estimated blur span: %.1f px across the stack", blur_span)
         if frame_guard:
             blur_span = min(FITTED_SPAN_SCALE * blur_span, max_span)
-    result = stack_kernel(
+    kernel, samples, summary = stack_kernel(
         aligned.positions,
         weights,
         lens=aligned.lens,
         absolute=aligned.absolute,
         blur_span_px=blur_span,
     )
+    beyond = []
+    if ends is not None:
+        beyond = end_kernels(
+            ends,
+            aligned.positions,
+            weights,
+            summary["blur_span_px"],
+            lens=aligned.lens,
+            absolute=aligned.absolute,
+        )
     aligned.timings["kernel"] = time.perf_counter() - t0
-    return result
+    return kernel, samples, summary, beyond
 
 
 def _describe_frames(stack: Stack) -> str:

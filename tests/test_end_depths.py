@@ -1,0 +1,95 @@
+"""Content beyond the ends of a focal stack's range (Sec. 4.1, issue 13): the offset
+measured against the optics that rendered the stack, the kernel of a depth against the
+frames' own lens PSFs, and the main job's gain on a plane beyond the range."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from skimage import data
+from test_engine import LENS, make_stack, positions_for
+
+from pipeline.core import defocus, optics, psf
+from pipeline.core.colour import srgb_to_linear
+from pipeline.core.quality import psnr
+from pipeline.core.stack_kernel import depth_kernel
+from pipeline.io.profiles import load_lens
+from pipeline.io.read import read_frame
+from pipeline.jobs.options import StackOptions
+from pipeline.jobs.stack import process_stack
+
+PLANES_MM = (500.0, 800.0, 1600.0)  # the scene's three vertical bands, left to right
+
+
+@pytest.fixture(scope="module")
+def sharp():
+    return srgb_to_linear(data.astronaut()[40:296, 130:386].astype(np.float32) / 255)
+
+
+def _centred(kernel: np.ndarray, size: int) -> np.ndarray:
+    pad = (size - kernel.shape[0]) // 2
+    return np.pad(kernel, pad)
+
+
+def test_depth_kernel_is_the_weighted_sum_of_the_frames_psfs_at_that_depth():
+    lens = load_lens(LENS)
+    positions = positions_for(450, 1200, 7)
+    weights = np.array([0.3, 0.05, 0.2, 0.1, 0.15, 0.12, 0.08])  # asymmetric on purpose
+    depth_mm = 1600.0  # beyond the far end: in focus in no frame
+    at = optics.image_distance(lens.focal_length_mm, depth_mm)
+    got = depth_kernel(positions, weights, at, lens=lens, absolute=True, blur_span_px=None)
+    frames = [psf.lens_psf(lens, depth_mm, p) for p in positions]  # Eq. 2 from the depth
+    size = max(got.shape[0], *(f.shape[0] for f in frames))
+    want = sum(w * _centred(f, size) for w, f in zip(weights, frames))
+    np.testing.assert_allclose(_centred(got, size), want / want.sum(), atol=2e-6)
+    assert got.sum() == pytest.approx(1.0)
+
+
+def _stack(tmp_path, sharp, near_mm, far_mm):
+    positions = positions_for(near_mm, far_mm, 9)
+    make_stack(tmp_path, sharp, list(PLANES_MM), positions)
+    return positions
+
+
+def _true_beyond(positions, depth_mm) -> float:
+    v = optics.image_distance(load_lens(LENS).focal_length_mm, depth_mm)
+    lo, hi = float(np.min(positions)), float(np.max(positions))
+    return max(lo - v, v - hi, 0.0) / (hi - lo)
+
+
+@pytest.mark.parametrize(("near_mm", "far_mm"), [(450, 1200), (560, 2500), (450, 2500)])
+def test_end_depths_measure_how_far_beyond_the_range_the_end_content_lies(
+    tmp_path, sharp, near_mm, far_mm
+):
+    positions = _stack(tmp_path, sharp, near_mm, far_mm)
+    frames = [read_frame(f).mean(axis=2) for f in sorted(tmp_path.glob("frame_*.tif"))]
+    lens = load_lens(LENS)
+    span = float(lens.blur_px(positions.max(), positions.min()))  # Eq. 2 across the range
+    ends, sharpest = defocus.end_depths(frames, positions, span)
+    assert sharpest.shape == frames[0].shape
+    found = {end.frame: end.beyond for end in ends}
+    # frame 0 is focused farthest (the smallest image distance), frame 8 nearest
+    want_far, want_near = _true_beyond(positions, PLANES_MM[2]), _true_beyond(positions, 500.0)
+    assert found[0] == pytest.approx(want_far, abs=0.04)
+    assert found[8] == pytest.approx(want_near, abs=0.04)
+
+
+def test_the_main_job_restores_a_plane_beyond_the_range(tmp_path, sharp):
+    _stack(tmp_path, sharp, 450, 1200)  # the 1600 mm plane lies beyond the far end
+    far = slice(2 * 256 // 3 + 8, 256 - 8)  # its band, away from the planes' borders
+
+    def run(name, **options):
+        return process_stack(
+            tmp_path, tmp_path / name, StackOptions(encoding="float32", **options)
+        )
+
+    default, plain = run("d.tif"), run("p.tif", frame_range=False)
+    gain = psnr(default.image[:, far], sharp[:, far]) - psnr(plain.image[:, far], sharp[:, far])
+    assert gain > 4.0  # 26.5 -> 33 dB when measured
+    (end,) = default.sidecar["frame_range"]["beyond_ends"]
+    assert end["frame"] == "frame_00.tif" and end["fraction"] > 0.2
+    assert psnr(default.image, sharp) > psnr(plain.image, sharp) + 1.0  # 26.9 -> 28.6 dB
+    middle = slice(256 // 3 + 8, 2 * 256 // 3 - 8)  # a plane inside the range: not worse
+    assert psnr(default.image[:, middle], sharp[:, middle]) > psnr(
+        plain.image[:, middle], sharp[:, middle]
+    ) - 0.3
