@@ -435,12 +435,7 @@ def process_stack(
             "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
     elif frames is not None:
-
-        def deconvolve_part(part, end_kernel, rows, cols):
-            box = clipped[rows, cols]
-            return restore_image(part, end_kernel, options, clipped=box, source=source)
-
-        ends = restore_ends(result, average, beyond, deconvolve_part)
+        ends = restore_ends(result, average, beyond, kernel)
         for end in ends:
             end["frame"] = stack.files[end["frame"]].name
         result, flat = quiet_flat_areas(result, average, frames)
