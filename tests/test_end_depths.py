@@ -93,3 +93,40 @@ def test_the_main_job_restores_a_plane_beyond_the_range(tmp_path, sharp):
     assert psnr(default.image[:, middle], sharp[:, middle]) > psnr(
         plain.image[:, middle], sharp[:, middle]
     ) - 0.3
+
+
+def test_the_end_correction_is_the_difference_of_two_wiener_filters():
+    from scipy import ndimage
+
+    from pipeline.core.psf import raster_pillbox
+    from pipeline.jobs import ends
+
+    rng = np.random.default_rng(5)
+    image = ndimage.gaussian_filter(rng.uniform(0, 1, (256, 320)), 1.5).astype(np.float32)
+    narrow, wide = raster_pillbox(5.0, 4), raster_pillbox(17.0, 10)
+    assert not np.any(ends._correction(image, narrow, narrow, 1))  # the same kernel: nothing
+    full = ends._correction(image, wide, narrow, 1)
+    # by hand: each Wiener filter on the reflect-padded image, one spectrum at a time
+    pad = 21
+    padded = np.pad(image.astype(np.float64), pad, mode="reflect")
+    fy = np.fft.fftfreq(padded.shape[0])[:, None]
+    fx = np.fft.fftfreq(padded.shape[1])[None, :]
+    gradient = (2 - 2 * np.cos(2 * np.pi * fy)) + (2 - 2 * np.cos(2 * np.pi * fx))
+
+    def wiener(kernel):
+        grid = np.zeros(padded.shape)
+        h = kernel.shape[0] // 2
+        grid[: h + 1, : h + 1] = kernel[h:, h:]
+        grid[-h:, : h + 1] = kernel[:h, h:]
+        grid[: h + 1, -h:] = kernel[h:, :h]
+        grid[-h:, -h:] = kernel[:h, :h]
+        k = np.fft.fft2(grid)
+        w = np.conj(k) / (np.abs(k) ** 2 + ends.CORRECTION_LAM * gradient)
+        return np.real(np.fft.ifft2(np.fft.fft2(padded) * w))[pad:-pad, pad:-pad]
+
+    np.testing.assert_allclose(full, wiener(wide) - wiener(narrow), atol=1e-5)
+    for factor in (2, 4):  # reduced: the same in the low band
+        reduced = ends._correction(image, wide, narrow, factor)
+        low = [ndimage.gaussian_filter(x, 8.0)[32:-32, 32:-32] for x in (full, reduced)]
+        assert np.corrcoef(low[0].ravel(), low[1].ravel())[0, 1] > 0.85
+        assert 0.7 < np.std(low[1]) / np.std(low[0]) < 1.4
