@@ -34,7 +34,7 @@ log = logging.getLogger(__name__)
 
 MIN_BEYOND = 0.02  # offsets below this share of the range: the stack's kernel does
 BLEND_PREVIEW_PX = 2.0  # smoothing of the end frame's map (preview px: ~13 px at full size)
-CORRECTION_LAM = 1e-3  # weight of the gradient prior in the end correction's Wiener filters
+CORRECTION_LAM = 1.6e-2  # weight of the gradient prior (per full-resolution frequency)
 CORRECTION_SIDE_PX = 384  # the correction runs at 1 / (shorter side // this), at most ...
 MAX_REDUCTION = 4  # ... a quarter of the resolution (pcb7's 1536 px: 384 px, 0.1 s)
 BLEND_FLOOR = 1e-3  # rows where the blend weight stays below this are left as they are
