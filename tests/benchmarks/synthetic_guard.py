@@ -10,6 +10,8 @@ Scenes:
   0.02, the lens and focus positions known (the kernel from the lens);
 * ``3 planes, no lens``: the same at sigma 0.01 with the lens removed from stack.toml, so
   the blur span is fitted (and, with the guard, doubled);
+* ``3 planes, far plane beyond the frames``: sigma 0.01, frames focused from 450 to 1200 mm
+  only, so the 1600 mm plane is in focus in none (Sec. 4.1; ``pipeline.jobs.ends``);
 * ``depth edge``: two 1/f textures at 500 mm (left, in front) and 1500 mm, ray traced
   with occlusion and the lens's breathing (``tests/reference/raytrace.py``, independent of
   pipeline.simulate), 9 frames focused from 400 to 2500 mm, sigma 0 and 0.01; PSNR also
@@ -142,9 +144,9 @@ def evaluate(name, folder: Path, truth, frames, regions, *, sparse=False) -> lis
     return rows
 
 
-def planes(folder: Path, noise: float, lens: bool):
+def planes(folder: Path, noise: float, lens: bool, far_mm: float = 2500.0):
     sharp = srgb_to_linear(data.astronaut()[40:296, 130:386].astype(np.float32) / 255)
-    make_stack(folder, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 9), noise=noise)
+    make_stack(folder, sharp, [500.0, 800.0, 1600.0], positions_for(450, far_mm, 9), noise=noise)
     if not lens:
         toml = folder / "stack.toml"
         toml.write_text("\n".join(line for line in toml.read_text().splitlines()
@@ -213,6 +215,11 @@ def main() -> None:
         folder.mkdir()
         truth, frames = planes(folder, 0.01, lens=False)
         lines += evaluate("3 planes, sigma 0.01, no lens", folder, truth, frames, None)
+        folder = Path(tmp) / "beyond"
+        folder.mkdir()
+        truth, frames = planes(folder, 0.01, lens=True, far_mm=1200.0)
+        lines += evaluate("3 planes, sigma 0.01, far plane beyond the frames", folder, truth,
+                          frames, None)
         for noise in (0.0, 0.01):
             folder = Path(tmp) / f"edge{noise}"
             folder.mkdir()
