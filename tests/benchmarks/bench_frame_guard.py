@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import importlib.util
-import json
 import os
 import statistics
 import sys
@@ -84,15 +83,8 @@ def report(results: dict, args, checkouts) -> str:
         + ".",
         "",
         *([f"**Note:** {args.note}", ""] if args.note else []),
-        "| stack | command | wall s | CPU s | peak RSS MiB |",
-        "| --- | --- | --- | --- | --- |",
+        *peer.command_table(results),
     ]
-    for stack, res in results.items():
-        for cmd, s in res["commands"].items():
-            lines.append(
-                f"| {stack} | {cmd} | {peer.fmt(s['wall_s'])} | {peer.fmt(s['cpu_s'])} | "
-                f"{peer.fmt(s['peak_rss_mib'], 0)} |"
-            )
     lines += [
         "",
         "Ratios: median of the per-round (paired) ratios [min-max]; ratio of medians. "
@@ -154,8 +146,6 @@ def main() -> int:
         + f"; load average (1/5/15 min) at start {env['loadavg_start']}, at end "
         f"{env['loadavg_end']}.\n"
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "frame_guard.md").write_text(md)
     payload = {
         "environment": env,
         "rounds": args.rounds,
@@ -163,10 +153,7 @@ def main() -> int:
         "checkouts": {name: str(path) for name, path in checkouts.items()},
         "results": results,
     }
-    (args.out / "frame_guard.json").write_text(json.dumps(payload, indent=2) + "\n")
-    print()
-    print(md)
-    print(f"wrote {args.out / 'frame_guard'}.md and .json")
+    peer.write_report(args.out, "frame_guard", md, payload)
     return 0
 
 

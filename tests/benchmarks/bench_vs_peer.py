@@ -195,6 +195,31 @@ def stages_of(cmd: list[str]) -> dict:
     return {"stages_s": json.loads(sidecar.read_text()).get("timings_s", {})}
 
 
+def write_report(out: Path, name: str, md: str, payload: dict) -> None:
+    """``out/name.md`` and ``out/name.json``, and the report on stdout."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.md").write_text(md)
+    (out / f"{name}.json").write_text(json.dumps(payload, indent=2) + "\n")
+    print()
+    print(md)
+    print(f"wrote {out / name}.md and .json")
+
+
+def command_table(results: dict) -> list[str]:
+    """Markdown rows: per stack and command, median [min-max] wall time, peak RSS, CPU."""
+    lines = [
+        "| stack | command | wall s | peak RSS MiB | CPU s |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for name, res in results.items():
+        for cmd, s in res["commands"].items():
+            lines.append(
+                f"| {name} ({res['frames']} frames) | {cmd} | {fmt(s['wall_s'])} | "
+                f"{fmt(s['peak_rss_mib'], 0)} | {fmt(s['cpu_s'])} |"
+            )
+    return lines
+
+
 def stage_table(results: dict) -> list[str]:
     """Median stage times (s, from the sidecars) of each flexdof command, per stack."""
     lines = ["", "Stages (median s, from each run's sidecar; `read` is summed over threads):", ""]
@@ -320,16 +345,7 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
     ]
     if note:
         lines += [f"**Note:** {note}", ""]
-    lines += [
-        "| stack | command | wall s | peak RSS MiB | CPU s |",
-        "| --- | --- | --- | --- | --- |",
-    ]
-    for name, res in results.items():
-        for cmd, s in res["commands"].items():
-            lines.append(
-                f"| {name} ({res['frames']} frames) | {cmd} | {fmt(s['wall_s'])} | "
-                f"{fmt(s['peak_rss_mib'], 0)} | {fmt(s['cpu_s'])} |"
-            )
+    lines += command_table(results)
     lines += [
         "",
         "Ratios: median of the per-round (paired) ratios [min-max]; ratio of medians. CPU s "
@@ -459,13 +475,8 @@ def main() -> int:
         + f"; load average (1/5/15 min) at start {env['loadavg_start']}, at end "
         f"{env['loadavg_end']}.\n"
     )
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"{name}.md").write_text(md)
     payload = {"environment": env, "peer_note": note, "repeats": args.repeats, "results": results}
-    (args.out / f"{name}.json").write_text(json.dumps(payload, indent=2) + "\n")
-    print()
-    print(md)
-    print(f"wrote {args.out / name}.md and .json")
+    write_report(args.out, name, md, payload)
     return 0
 
 
