@@ -85,10 +85,10 @@ def test_the_main_job_restores_a_plane_beyond_the_range(tmp_path, sharp):
 
     default, plain = run("d.tif"), run("p.tif", frame_range=False)
     gain = psnr(default.image[:, far], sharp[:, far]) - psnr(plain.image[:, far], sharp[:, far])
-    assert gain > 4.0  # 26.5 -> 33 dB when measured
+    assert gain > 3.0  # measured: 26.59 -> 30.88 dB
     (end,) = default.sidecar["frame_range"]["beyond_ends"]
     assert end["frame"] == "frame_00.tif" and end["fraction"] > 0.2
-    assert psnr(default.image, sharp) > psnr(plain.image, sharp) + 1.0  # 26.9 -> 28.6 dB
+    assert psnr(default.image, sharp) > psnr(plain.image, sharp) + 1.0  # 26.89 -> 28.23 dB
     middle = slice(256 // 3 + 8, 2 * 256 // 3 - 8)  # a plane inside the range: not worse
     assert psnr(default.image[:, middle], sharp[:, middle]) > psnr(
         plain.image[:, middle], sharp[:, middle]
@@ -130,3 +130,14 @@ def test_the_end_correction_is_the_difference_of_two_wiener_filters():
         low = [ndimage.gaussian_filter(x, 8.0)[32:-32, 32:-32] for x in (full, reduced)]
         assert np.corrcoef(low[0].ravel(), low[1].ravel())[0, 1] > 0.85
         assert 0.7 < np.std(low[1]) / np.std(low[0]) < 1.4
+
+
+def test_end_depths_ignore_frames_at_the_end_frames_own_position(tmp_path, sharp):
+    positions = _stack(tmp_path, sharp, 450, 1200)
+    frames = [read_frame(f).mean(axis=2) for f in sorted(tmp_path.glob("frame_*.tif"))]
+    frames.insert(1, frames[0].copy())  # the far end frame taken twice
+    positions = np.insert(positions, 1, positions[0])
+    span = float(load_lens(LENS).blur_px(positions.max(), positions.min()))
+    ends, _ = defocus.end_depths(frames, positions, span)
+    assert all(np.isfinite(end.beyond) and 0 <= end.beyond <= 0.5 for end in ends)
+    assert {e.frame: e.beyond for e in ends}[0] > 0.1  # still found from the other frames

@@ -202,6 +202,8 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0):
         if mask.sum() > MIN_MASK_PX:
             for j in others:
                 dx = abs(x[j] - x[end])
+                if dx <= 0:  # a frame at the end frame's own position says nothing
+                    continue
 
                 def cost(d, source=grey[end], target=grey[j], mask=mask):
                     residual = (_predict(source, d) - target)[mask]

@@ -298,10 +298,7 @@ def quiet_flat_areas(
     alpha = np.clip((np.float32(high) - detail) / np.float32(high - low), 0.0, 1.0)
     # at or beyond white in some frame the codes end, and with them what the range knows
     # (blown highlights; float frames in other units): not judged flat there
-    top = _channels(support.high.reshape(image.shape))
-    beyond = top[0] == CODE_MAX
-    for channel in top[1:]:
-        beyond |= channel == CODE_MAX
+    beyond = _at_white(support.high.reshape(image.shape))
     alpha[_reduced(beyond.astype(np.float32), ENERGY_BLOCK_PX) > 0] = 0.0
     alpha = cv2.GaussianBlur(alpha, (0, 0), FLAT_BLEND_PX / ENERGY_BLOCK_PX)
     alpha = cv2.resize(alpha, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR)
@@ -322,6 +319,16 @@ def quiet_flat_areas(
         above = image[max(0, r1 - reach) : r1].copy()
         image[r0:r1] += noise[r0 - a0 : r1 - a0] * alpha[r0:r1]
     return image, float(np.mean(alpha > 0.5))
+
+
+def _at_white(codes: np.ndarray) -> np.ndarray:
+    """Pixels at the end code (white or beyond) in any channel (the channels' maximum by
+    OpenCV: np.any over the channel axis took 43 ms on 3 Mpx)."""
+    channels = _channels(codes)
+    top = channels[0]
+    for channel in channels[1:]:
+        top = cv2.max(top, channel)
+    return top == CODE_MAX
 
 
 def keep_to_frames(image: np.ndarray, support: FrameSupport, clipped=None):
@@ -378,13 +385,7 @@ def prefer_sharpest(
     alpha = cv2.GaussianBlur(alpha, (0, 0), BLEND_SIGMA_PX / ENERGY_BLOCK_PX)
     size = (image.shape[1], image.shape[0])
     alpha = cv2.resize(alpha, size, interpolation=cv2.INTER_LINEAR)
-    # at or beyond white in the sharpest frame (any channel): its codes end there (the
-    # channels' maximum by OpenCV: np.any over the channel axis took 43 ms on 3 Mpx)
-    channels = _channels(sharpest)
-    top = channels[0]
-    for channel in channels[1:]:
-        top = cv2.max(top, channel)
-    saturated = top == CODE_MAX
+    saturated = _at_white(sharpest)  # the sharpest frame's codes end there
     if np.any(saturated):
         alpha[saturated] = 0.0
     fraction = float(np.mean(alpha > 0.5))
