@@ -148,3 +148,80 @@ def test_gcv_with_a_kernel_variance_equals_the_matrix_gcv(lam):
     assert gcv.gcv_noise(lam, spectra, mirrored.size) == pytest.approx(want_noise, rel=1e-9)
     without = gcv._spectra(y, gcv.kernel_grid(shape, kernel))
     assert gcv.gcv_score(lam, without) != pytest.approx(want_score, rel=1e-3)
+
+
+def _clean_textured_scene():
+    """A 1/f texture (fine detail everywhere, as the ray-traced depth edge of issue 13)
+    blurred by an asymmetric IPSF-like kernel (equal-weight discs of radius 0-5 px, whose
+    sharp core keeps the spectrum away from zero, plus a tail to the right), no noise: the
+    data's own noise estimate reads the texture."""
+    from reference.cases import texture
+
+    x = texture((160, 160), 5)
+    yy, xx = np.mgrid[-5:6, -5:6]
+    kernel = sum((yy**2 + xx**2 <= r * r) / np.count_nonzero(yy**2 + xx**2 <= r * r)
+                 for r in range(6))
+    kernel[5, 6:10] += [0.3, 0.2, 0.12, 0.05]
+    kernel /= kernel.sum()
+    return x, ndimage.convolve(x, kernel, mode="reflect"), kernel
+
+
+def test_clean_texture_gets_gcvs_floor_not_the_prior_fit_fed_texture_as_noise():
+    """The estimated sigma is only an upper bound: on clean data GCV's minimum sits in its
+    grid's first decade with a noise far below it, and that ``lam`` is kept (within 0.3 dB
+    of the ``lam`` chosen with the truth by a brute-force scan). Passing the same sigma as
+    a known level keeps the two-sided rule, whose prior fit over-smooths by > 1 dB."""
+    import importlib
+
+    from pipeline.core.deconvolve.common import estimate_noise_sigma
+    from pipeline.core.quality import psnr
+
+    wiener_module = importlib.import_module("pipeline.core.deconvolve.wiener")
+
+    x, y, kernel = _clean_textured_scene()
+    inner = (slice(16, -16), slice(16, -16))
+
+    def db(p):
+        return psnr(restore(y, p)[inner], x[inner])
+
+    sigma = estimate_noise_sigma(y)
+    assert sigma > 1e-3  # the texture, read as noise (the data are clean)
+    best = max(db(plan(y, kernel, regularization=lam)) for lam in np.logspace(-7, -1, 25))
+    auto = plan(y, kernel)
+    lam_gcv, noise = gcv.gcv_regularization(y, _grid(y, kernel))
+    assert gcv.interpolates(lam_gcv, noise, sigma)
+    prior_lam = float(plan(y, kernel, noise_sigma=sigma).params["lam"][0])
+    assert gcv.floor_predicts_better(y, _grid(y, kernel), lam_gcv, prior_lam)
+    floor = wiener_module.lam_for_noise_gain(kernel, wiener_module.MAX_NOISE_GAIN)
+    assert float(auto.params["lam"][0]) == pytest.approx(max(lam_gcv, floor, 1e-6))
+    assert db(auto) >= best - 0.3
+    assert db(auto) > psnr(y[inner], x[inner]) + 10  # it restores (a flipped kernel fails)
+    known = plan(y, kernel, noise_sigma=sigma)
+    assert db(known) < db(auto) - 1.0
+
+
+@pytest.mark.parametrize(
+    ("lam", "noise", "expected"),
+    [(9e-7, 0.39, True), (1.1e-6, 0.39, False), (9e-7, 0.41, False), (1e-7, 0.0, True)],
+)
+def test_gcv_interpolates_only_in_its_first_decade_below_the_bound_over_trust(
+    lam, noise, expected
+):
+    """The first decade ends at ``GCV_LAMS[1] = 1e-6``; the noise must stay below
+    ``1 / GCV_TRUST = 0.4`` of the bound (1 here)."""
+    assert gcv.interpolates(lam, noise, 1.0) is expected
+
+
+def test_the_floor_is_preferred_from_the_margin_on(monkeypatch):
+    """``floor_predicts_better`` compares GCV's two scores with ``GCV_FLOOR_MARGIN``: just
+    above their ratio it says no, just below it says yes (and never for equal ``lam``)."""
+    x, y, kernel = _clean_textured_scene()
+    grid = _grid(y, kernel)
+    spectra = gcv._spectra(y, grid)
+    ratio = gcv.gcv_score(1e-2, spectra) / gcv.gcv_score(1e-7, spectra)
+    assert ratio > 1.5
+    monkeypatch.setattr(gcv, "GCV_FLOOR_MARGIN", ratio * 1.001)
+    assert not gcv.floor_predicts_better(y, grid, 1e-7, 1e-2)
+    monkeypatch.setattr(gcv, "GCV_FLOOR_MARGIN", ratio * 0.999)
+    assert gcv.floor_predicts_better(y, grid, 1e-7, 1e-2)
+    assert not gcv.floor_predicts_better(y, grid, 1e-2, 1e-2)

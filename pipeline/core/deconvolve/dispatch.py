@@ -94,6 +94,8 @@ def plan(
         sigma = np.array(
             map_channels(lambda c: noise_sigma_2d(y[..., c], valid[..., c]), y.shape[2])
         )
+        if method == "wiener":  # an upper bound, not a known level (see _plan_wiener)
+            options = {**options, "sigma_is_estimate": True}
     builder = {"wiener": _plan_wiener, "rl": _plan_rl, "sparse": _plan_sparse}[method]
     params, depth = builder(y, valid, k, sigma, **options)
     return Plan(method, k, sat, sigma, params, depth)

@@ -31,6 +31,27 @@ GCV_REFINE_STEPS = 10  # golden-section steps in log lam between the best's neig
 # below, its minimum sits at the grid's floor, interpolating the data (a 40 px comet:
 # 0.015x, 0.1 dB worse than the prior fit). Noisy stacks read 1.2-1.5x.
 GCV_TRUST = 2.5
+# Where GCV's minimum is its grid's floor, it is kept over the prior fit's lam only when GCV
+# scores that lam this much worse (clean 1/f textures under a stack's IPSF: 1.23-1.32x; a
+# noisy photograph under a delta kernel, where the floor skips a real denoising: 1.01-1.07x)
+GCV_FLOOR_MARGIN = 1.15
+
+
+def interpolates(lam: float, noise: float, sigma_bound: float) -> bool:
+    """GCV's minimum lies in its grid's first decade (``lam < GCV_LAMS[1]``) with a noise
+    below ``sigma_bound / GCV_TRUST``: the model explains the data down to a noise the
+    bound does not see. Where the bound is the data's own estimate (texture raises it),
+    that is clean data, not a failed fit (:func:`pipeline.core.deconvolve.wiener.
+    _plan_wiener`)."""
+    return bool(lam < GCV_LAMS[1] and noise < sigma_bound / GCV_TRUST)
+
+
+def floor_predicts_better(y: np.ndarray, grid, lam_floor: float, lam_other: float) -> bool:
+    """GCV scores ``lam_other`` at least ``GCV_FLOOR_MARGIN`` times its score at
+    ``lam_floor`` on channel ``y``: by GCV's own estimate of the prediction error, the
+    larger ``lam`` removes signal, not noise (``grid`` from :func:`kernel_grid`)."""
+    spectra = _spectra(y, grid)
+    return gcv_score(lam_other, spectra) >= GCV_FLOOR_MARGIN * gcv_score(lam_floor, spectra)
 
 
 def crop_shape(image_shape, kernel_shape) -> tuple[int, int] | None:

@@ -207,6 +207,7 @@ def _plan_wiener(
     noise_gain=None,
     max_noise=None,
     auto="gcv",
+    sigma_is_estimate=False,
 ):
     """The Wiener filter's ``lam`` per channel and its reach (``pad``).
 
@@ -218,6 +219,20 @@ def _plan_wiener(
     ``max_noise`` (one value or one per channel; e.g. a single frame's noise, issue 13:
     where GCV's noise agrees with the data's its ``lam`` is near-optimal, and the ceiling
     only smoothed, 2.3 dB on a nine-frame stack at sigma 0.01).
+
+    ``sigma_is_estimate``: ``sigma`` is the data's own estimate, an upper bound that fine
+    texture raises (:func:`pipeline.core.deconvolve.common.estimate_noise_sigma`), not a
+    known level. Then GCV's own minimum is kept also where it lies in its grid's first
+    decade with a noise below ``sigma / GCV_TRUST`` (:func:`pipeline.core.deconvolve.gcv.
+    interpolates`) *and* GCV scores the prior fit's ``lam`` clearly worse
+    (:func:`pipeline.core.deconvolve.gcv.floor_predicts_better`): the data show no noise
+    the model leaves unexplained, and the prior fit, fed the texture as noise, smooths
+    signal away (issue 13: a ray-traced depth edge of 1/f textures reads sigma 0.005 when
+    clean; the prior fit's ``lam`` 3.5e-3 left 1.1-1.5 dB to the truth-tuned ``lam``, GCV's
+    floor 0.06-0.08 dB). Where GCV barely separates the two (a noisy photograph under a
+    delta kernel: 1.01-1.07x), its floor would skip a real denoising (0.1-0.7 dB) and the
+    prior fit stays. A known sigma keeps the two-sided rule (a 40 px comet with sigma
+    given: GCV's floor 0.1 dB worse than the prior fit).
     """
     if prior not in PRIORS:
         raise InputError(f"prior must be one of {PRIORS}, got {prior!r}")
@@ -243,6 +258,13 @@ def _plan_wiener(
             lam[fit] = np.divide(
                 sigma[fit] ** 2, scale, out=np.zeros_like(scale), where=scale > 0
             )
+        if sigma_is_estimate and auto == "gcv" and shape is not None:
+            for c in fit:  # clean data whose texture the estimate read as noise
+                lam_gcv, noise_gcv = found[c]
+                if gcv.interpolates(lam_gcv, noise_gcv, sigma[c]) and gcv.floor_predicts_better(
+                    y[..., c], grid, lam_gcv, lam[c]
+                ):
+                    lam[c], trusted[c] = lam_gcv, True
         # never amplify white noise by more than noise_gain (issue 13), nor ever by more
         # than MAX_NOISE_GAIN: with a clean input (sigma ~ 0) lam falls to its floor and a
         # lens PSF's spectral zeros amplify round-off (issue 14: an 89 px pillbox, -11 dB)
