@@ -75,7 +75,8 @@ def plan(
         Pixels ``>= saturation`` are clipped and excluded from the data term.
     noise_sigma : float or sequence, optional
         Noise standard deviation per channel; estimated by
-        :func:`estimate_noise_sigma` when omitted.
+        :func:`estimate_noise_sigma` when omitted (Wiener then treats it as an upper
+        bound: fine texture raises it, see ``_plan_wiener``).
     censored : bool array (rows, cols), optional
         Pixels treated like clipped ones: excluded from the data term, their true
         value at least the observed one (pass the same mask to :func:`restore`).
