@@ -175,7 +175,7 @@ def test_clean_texture_gets_gcvs_floor_not_the_prior_fit_fed_texture_as_noise():
     a known level keeps the two-sided rule, whose prior fit over-smooths by > 1 dB."""
     import importlib
 
-    from pipeline.core.deconvolve.common import estimate_noise_sigma
+    from pipeline.core.deconvolve.common import _LAM_MIN, estimate_noise_sigma
     from pipeline.core.quality import psnr
 
     wiener_module = importlib.import_module("pipeline.core.deconvolve.wiener")
@@ -192,13 +192,12 @@ def test_clean_texture_gets_gcvs_floor_not_the_prior_fit_fed_texture_as_noise():
     auto = plan(y, kernel)
     lam_gcv, noise = gcv.gcv_regularization(y, _grid(y, kernel))
     assert gcv.interpolates(lam_gcv, noise, sigma)
-    prior_lam = float(plan(y, kernel, noise_sigma=sigma).params["lam"][0])
-    assert gcv.floor_predicts_better(y, _grid(y, kernel), lam_gcv, prior_lam)
+    known = plan(y, kernel, noise_sigma=sigma)  # the same sigma, given: the prior fit
+    assert gcv.floor_predicts_better(y, _grid(y, kernel), lam_gcv, known.params["lam"][0])
     floor = wiener_module.lam_for_noise_gain(kernel, wiener_module.MAX_NOISE_GAIN)
-    assert float(auto.params["lam"][0]) == pytest.approx(max(lam_gcv, floor, 1e-6))
+    assert float(auto.params["lam"][0]) == pytest.approx(max(lam_gcv, floor, _LAM_MIN))
     assert db(auto) >= best - 0.3
     assert db(auto) > psnr(y[inner], x[inner]) + 10  # it restores (a flipped kernel fails)
-    known = plan(y, kernel, noise_sigma=sigma)
     assert db(known) < db(auto) - 1.0
     # GCV's lam, once kept, is exempt from a noise ceiling (as where GCV's noise agrees)
     capped = plan(y, kernel, max_noise=1e-4)
