@@ -248,11 +248,12 @@ def test_the_floor_is_preferred_from_the_margin_on(monkeypatch):
 )
 @settings(max_examples=25, deadline=None)
 @example(seed=0, radius=6, tail=0.0, level=0.0)  # a plain pillbox's spectral zeros, clean
-def test_the_automatic_lam_never_leaves_a_blurred_texture_worse(seed, radius, tail, level):
+def test_the_automatic_lam_restores_a_blurred_texture_by_at_least_1_db(seed, radius, tail, level):
     """Clean or nearly clean 1/f textures under random asymmetric kernels (a pillbox of
     ``radius`` with a tail to the right), sigma estimated from the data: whichever rule
     sets ``lam`` (GCV, its floor, the prior fit, the noise-gain ceiling), the result is
-    finite and no further from the truth than the blurred input."""
+    finite and at least 1 dB closer to the truth than the blurred input (returning the
+    input fails; the worst of 150 random draws gained 3.1 dB)."""
     from reference.cases import texture
 
     from pipeline.core.quality import psnr
@@ -267,7 +268,7 @@ def test_the_automatic_lam_never_leaves_a_blurred_texture_worse(seed, radius, ta
     out = restore(y, plan(y, kernel))
     inner = (slice(12, -12), slice(12, -12))
     assert np.all(np.isfinite(out))
-    assert psnr(out[inner], x[inner]) >= psnr(y[inner], x[inner])
+    assert psnr(out[inner], x[inner]) >= psnr(y[inner], x[inner]) + 1.0
 
 
 @pytest.mark.parametrize("noise", [0.0, 0.01])
