@@ -215,6 +215,7 @@ def sidecar_keys(tmp_path_factory) -> set[str]:
             (stack, StackOptions(align="analytic", save_kernel=base / "kernel.tif",
                                  frame_guard=True)),
             (stack, StackOptions(align="analytic")),  # the default's frame_range
+            (stack, StackOptions(align="analytic", method="multiframe")),
             (sweep, StackOptions()),
         )):
             output = base / f"{directory.name}{run}.tif"

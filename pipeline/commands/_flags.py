@@ -8,7 +8,7 @@ heavy. The vocabulary (also the README's flag table):
 - ``--lens NAME|PATH``; depths in millimetres as ``--near-mm/--far-mm`` (a sweep or a
   depth range), ``--focus-mm``, ``--at-mm``, ``--depth-mm``; times in seconds as
   ``--exposure-s``; every quantity flag carries its unit;
-- ``--align {estimate,analytic,none}``, ``--method {wiener,rl,sparse}``;
+- ``--align {estimate,analytic,none}``, ``--method {wiener,rl,multiframe}``;
 - ``--threads``, ``--scheduler`` for where a job runs;
 - ``--json`` on every command that produces a result;
 - ``-q/--quiet`` and ``-v/--verbose`` anywhere on the line.
@@ -26,7 +26,9 @@ from pathlib import Path
 # agree): importing those modules would import numpy.
 # The sparse prior is not offered on the command line: 100-160x Wiener's time for
 # +0.06-0.09 dB (issue 13); the API, the accuracy benchmark and workflow files keep it.
-CLI_METHODS = ("wiener", "rl")
+# "multiframe" needs a focal stack's frames: not offered where one image is deconvolved.
+CLI_METHODS = ("wiener", "rl", "multiframe")
+SINGLE_IMAGE_METHODS = ("wiener", "rl")
 ALIGN_MODES = ("estimate", "analytic", "none")
 ENCODINGS = ("srgb16", "linear16", "float32", "srgb8")
 DEFAULT_LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
@@ -202,12 +204,20 @@ def add_compute(parser: argparse.ArgumentParser) -> None:
     )
 
 
-def add_method(parser: argparse.ArgumentParser, *, defaults: bool = True) -> None:
+def add_method(
+    parser: argparse.ArgumentParser, *, defaults: bool = True, methods=CLI_METHODS
+) -> None:
     parser.add_argument(
         "--method",
-        choices=CLI_METHODS,
+        choices=methods,
         default="wiener" if defaults else None,
-        help="deconvolution: Wiener or Richardson-Lucy",
+        help="deconvolution: Wiener or Richardson-Lucy"
+        + (
+            "; multiframe: the quality method, each depth restored from all frames "
+            "(3-5x slower; about 40 bytes per pixel per frame of memory)"
+            if "multiframe" in methods
+            else ""
+        ),
     )
     parser.add_argument(
         "--tile-px",

@@ -27,7 +27,7 @@ def register(subparsers) -> None:
     _flags.add_lens(parser, required=True)
     _flags.add_depth_range(parser, far=math.inf, required=True)
     _flags.add_exposure(parser, 1.0, "exposure time of each capture, s")
-    _flags.add_method(parser)
+    _flags.add_method(parser, methods=_flags.SINGLE_IMAGE_METHODS)
     _flags.add_compute(parser)
     _flags.add_json(parser)
     parser.set_defaults(func=run)

@@ -118,6 +118,17 @@ def _blur_model(positions: np.ndarray, *, lens: Lens | None, absolute: bool, blu
     return blur
 
 
+def _frame_rasters(positions, x, *, lens, absolute, blur_span_px, scale=1.0):
+    """Every frame's defocus raster (Eq. 3 or 4, unnormalised) for a point focused at
+    ``x``, on one grid wide enough for the largest, for frames resized by ``scale``."""
+    blur = _blur_model(positions, lens=lens, absolute=absolute, blur_span_px=blur_span_px)
+    diameters = np.asarray(blur(positions, x), dtype=np.float64) * scale
+    model = lens.psf_model if lens else "pillbox"
+    g = lens.gaussian_g if lens else 1.0
+    half = _resolve_size(None, float(diameters.max()), model, g) // 2
+    return [raster_lens_psf(model, d, half, g) for d in diameters]
+
+
 def depth_kernel(
     positions: np.ndarray,
     weights: np.ndarray,
@@ -130,13 +141,28 @@ def depth_kernel(
     """The weighted average's PSF for a point focused at ``x`` (the discrete Eq. 5,
     ``sum_i w_i P(b(p_i, x))``), which may lie outside the frames' range: the kernel of
     one depth, where :func:`stack_kernel` averages over the range's depths."""
-    blur = _blur_model(positions, lens=lens, absolute=absolute, blur_span_px=blur_span_px)
-    diameters = np.asarray(blur(positions, x), dtype=np.float64)
-    model = lens.psf_model if lens else "pillbox"
-    g = lens.gaussian_g if lens else 1.0
-    half = _resolve_size(None, float(diameters.max()), model, g) // 2
-    total = sum(w * raster_lens_psf(model, d, half, g) for w, d in zip(weights, diameters))
-    return _normalise(total)
+    rasters = _frame_rasters(
+        positions, x, lens=lens, absolute=absolute, blur_span_px=blur_span_px
+    )
+    return _normalise(sum(w * r for w, r in zip(weights, rasters)))
+
+
+def frame_kernels(
+    positions: np.ndarray,
+    x: float,
+    *,
+    lens: Lens | None,
+    absolute: bool,
+    blur_span_px: float | None,
+    scale: float = 1.0,
+) -> list[np.ndarray]:
+    """Each frame's own PSF for a point focused at ``x`` (Eqs. 2-4; each sums to 1), for
+    frames resized by ``scale``: the kernels of the multi-frame method
+    (:mod:`pipeline.core.multiframe`)."""
+    rasters = _frame_rasters(
+        positions, x, lens=lens, absolute=absolute, blur_span_px=blur_span_px, scale=scale
+    )
+    return [_normalise(r) for r in rasters]
 
 
 def stack_kernel(

@@ -13,7 +13,9 @@ import numpy as np
 from pipeline.core import validate
 from pipeline.errors import InputError
 
-METHODS = ("wiener", "rl", "sparse")
+# "multiframe" restores a focal stack from its frames, per depth (pipeline.core.multiframe):
+# only the main job over a focal stack offers it
+METHODS = ("wiener", "rl", "sparse", "multiframe")
 ALIGN_MODES = ("estimate", "analytic", "none")
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
 

@@ -42,6 +42,7 @@ from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.jobs.ends import end_kernels, restore_ends
+from pipeline.jobs.multiframe import restore_multiframe
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import (
     RESCALE_ABOVE,
@@ -414,10 +415,11 @@ def process_stack(
     t0 = time.perf_counter()
     ceiling = noise_ceiling(frames, average, clipped) if options.frame_guard else None
     source = _describe_frames(stack)
+    multi = options.method == "multiframe"  # the Sec. 9 result first: its fallback
     result = restore_image(
         average,
         kernel,
-        options,
+        dataclasses.replace(options, method="wiener") if multi else options,
         clipped=clipped,
         kernel_samples=kernel_samples,
         source=source,
@@ -443,6 +445,13 @@ def process_stack(
         timings["frame_range"] = time.perf_counter() - t0
         sidecar["frame_range"] = {"flat_fraction": round(flat, 4), "beyond_ends": ends}
     progress("deconvolve", 1, 1)
+    if multi:
+        t0 = time.perf_counter()
+        span = kernel_summary.get("blur_span_px")
+        result, sidecar["multiframe"] = restore_multiframe(
+            aligned, span, result, clipped, average=average, support=frames, progress=progress
+        )
+        timings["multiframe"] = time.perf_counter() - t0
     exif = read_exif(stack.files[0])
     return write_result(output, result, kernel, sidecar, timings, start, options, exif)
 

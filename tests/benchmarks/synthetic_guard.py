@@ -1,5 +1,6 @@
-"""``--frame-guard`` on stacks with ground truth (issue 13): PSNR and SSIM of the main job
-with and without it, against a Wiener filter tuned on the truth and the best frame.
+"""``--frame-guard`` and the quality method on stacks with ground truth (issue 13): PSNR and
+SSIM of the main job with and without the guard and with ``--method multiframe``, against a
+Wiener filter tuned on the truth and the best frame.
 
     python tests/benchmarks/synthetic_guard.py [--out results/real_regions/synthetic.md]
 
@@ -21,7 +22,7 @@ Scenes:
 
 Columns: the best frame; ``default`` (no guard); ``--frame-guard``; ``tuned`` = Wiener
 with ``lam`` chosen on the truth (20 values, 1e-7..1e-1) on the default's average and
-kernel; ``sparse`` (the quality method) with its time.
+kernel; ``multiframe`` (the quality method, :mod:`pipeline.core.multiframe`); each job's time.
 """
 
 from __future__ import annotations
@@ -102,7 +103,7 @@ def scores(image, truth, regions) -> list[str]:
     return cells
 
 
-def evaluate(name, folder: Path, truth, frames, regions, *, sparse=False) -> list[str]:
+def evaluate(name, folder: Path, truth, frames, regions) -> list[str]:
     rows = []
     with scheduler_context(threads=2), tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
@@ -112,8 +113,7 @@ def evaluate(name, folder: Path, truth, frames, regions, *, sparse=False) -> lis
         results["default"] = (default, t_default)
         results["--frame-guard"] = run_job(folder, tmp / "guard.tif", frame_guard=True)[:2]
         results["tuned Wiener"] = (tuned_wiener(seen, truth), None)
-        if sparse:
-            results["sparse"] = run_job(folder, tmp / "sparse.tif", method="sparse")[:2]
+        results["multiframe"] = run_job(folder, tmp / "multi.tif", method="multiframe")[:2]
     for label, (image, seconds) in results.items():
         time_s = "" if seconds is None else f"{seconds:.2f}"
         rows.append(f"| {name} | {label} | " + " | ".join(scores(image, truth, regions))
@@ -157,8 +157,7 @@ def main() -> None:
             folder = Path(tmp) / f"planes{noise}"
             folder.mkdir()
             truth, frames = planes(folder, noise, lens=True)
-            lines += evaluate(f"3 planes, sigma {noise}", folder, truth, frames, None,
-                              sparse=noise > 0)
+            lines += evaluate(f"3 planes, sigma {noise}", folder, truth, frames, None)
             print("\n".join(lines[-5:]), flush=True)
         folder = Path(tmp) / "nolens"
         folder.mkdir()
@@ -173,14 +172,13 @@ def main() -> None:
             folder = Path(tmp) / f"edge{noise}"
             folder.mkdir()
             truth, frames, regions = depth_edge(folder, noise)
-            lines += evaluate(f"depth edge, sigma {noise}", folder, truth, frames, regions,
-                              sparse=noise > 0)
+            lines += evaluate(f"depth edge, sigma {noise}", folder, truth, frames, regions)
             print("\n".join(lines[-5:]), flush=True)
     sample = TESTS.parent / "stacks" / "motorcycle"
     truth = read_frame(sample / "ground_truth.tif")
     regions = motorcycle_regions(sample, truth)
     lines += evaluate("motorcycle (noisy)", sample, truth, sorted(sample.glob("frame_*.png")),
-                      regions, sparse=True)
+                      regions)
     text = "\n".join(lines)
     print(text)
     if args.out:
