@@ -214,7 +214,7 @@ def add_method(
         help="deconvolution: Wiener or Richardson-Lucy"
         + (
             "; multiframe: the quality method, each depth restored from all frames "
-            "(3-5x slower; about 40 bytes per pixel per frame of memory)"
+            "(for stacks that follow the model; 2-11x slower, 3-4x the memory)"
             if "multiframe" in methods
             else ""
         ),

@@ -4,8 +4,9 @@ The frames are read again and warped onto the reference with Lanczos interpolati
 average's bilinear warp low-passes each frame, which an average hides and a frame used as
 it is does not), then restored per depth from all of them
 (:func:`pipeline.core.multiframe.restore`), blended into the Sec. 9 result near depth
-changes and clipped pixels. Holds every frame and its spectrum in memory: about
-``40 n`` bytes per pixel for ``n`` frames (pcb7, 8 frames of 3 Mpx: about 1 GB).
+changes and clipped pixels. Holds every frame and its spectrum in memory: pcb7 (7 frames
+of 3 Mpx) peaks at 1.3 GiB, pcb10 (10 frames) at 1.8 GiB, 3-4x the default; 7-11x its time
+(``tests/benchmarks/results/speed/vs_peer_quality.md``).
 """
 
 from __future__ import annotations

@@ -3,6 +3,7 @@
     python tests/benchmarks/bench_vs_peer.py --focus-stack PATH [--repeats 5] [--out DIR]
     python tests/benchmarks/bench_vs_peer.py --focus-stack PATH --scaling [--repeats 3]
     python tests/benchmarks/bench_vs_peer.py --focus-stack PATH --baseline ../base  # before/after
+    python tests/benchmarks/bench_vs_peer.py --focus-stack PATH --quality  # + --method multiframe
 
 Default mode, on pcb7 (``pcb7/pcb_*.jpg``, 7 frames 2048x1536; ``expected.jpg`` is
 another tool's result and is left out) and pcb10 (``pcb10/pcb_*.JPG``, 10 frames):
@@ -133,10 +134,23 @@ BASELINE_SNIPPET = (
 )
 
 
+QUALITY = "flexdof multiframe"  # the quality method, with --quality
+
+
 def commands_for(
-    frames: list[str], tmp: Path, peer: str | None, decode: bool = True, baseline=None
+    frames: list[str],
+    tmp: Path,
+    peer: str | None,
+    decode: bool = True,
+    baseline=None,
+    quality: bool = False,
 ) -> dict:
     cmds = {"flexdof": [*flexdof_exe(), "stack", *frames, "-o", str(tmp / "flexdof.tif")]}
+    if quality:
+        cmds[QUALITY] = [
+            *flexdof_exe(), "stack", *frames, "-o", str(tmp / "multi.tif"),
+            "--method", "multiframe",
+        ]  # fmt: skip
     if baseline:  # another checkout of flexdof (e.g. a git worktree of an older commit)
         cmds["flexdof@base"] = [
             sys.executable, "-c", BASELINE_SNIPPET, str(baseline),
@@ -254,15 +268,16 @@ def summarise(runs: dict[str, list[dict]]) -> dict:
             key: summary([m[key] for m in ms]) for key in ("wall_s", "peak_rss_mib", "cpu_s")
         }
     ratios = {}
-    for ref in ("focus-stack", "decode", "flexdof@base"):
-        if ref not in runs or "flexdof" not in runs:
-            continue
-        for key in ("wall_s", "peak_rss_mib", "cpu_s"):
-            paired = [a[key] / b[key] for a, b in zip(runs["flexdof"], runs[ref])]
-            ratios[f"flexdof/{ref} {key}"] = {
-                "paired": summary(paired),
-                "of_medians": out["flexdof"][key]["median"] / out[ref][key]["median"],
-            }
+    for subject in (s for s in ("flexdof", QUALITY) if s in runs):
+        for ref in ("focus-stack", "decode", "flexdof@base", "flexdof"):
+            if ref not in runs or ref == subject:
+                continue
+            for key in ("wall_s", "peak_rss_mib", "cpu_s"):
+                paired = [a[key] / b[key] for a, b in zip(runs[subject], runs[ref])]
+                ratios[f"{subject}/{ref} {key}"] = {
+                    "paired": summary(paired),
+                    "of_medians": out[subject][key]["median"] / out[ref][key]["median"],
+                }
     return {"commands": out, "ratios": ratios}
 
 
@@ -332,7 +347,9 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
         for name, pattern in STACKS.items():
             frames = frames_of(pattern)
             log(f"{name}: {len(frames)} frames")
-            cmds = commands_for(frames, Path(tmp), peer, baseline=args.baseline)
+            cmds = commands_for(
+                frames, Path(tmp), peer, baseline=args.baseline, quality=args.quality
+            )
             runs = alternate(cmds, args.repeats, Path(tmp), log)
             results[name] = {"frames": len(frames), "runs": runs, **summarise(runs)}
     lines = [
@@ -363,6 +380,11 @@ def compare(args, peer, note, log) -> tuple[dict, str]:
     }
     order = [*targets, "flexdof/focus-stack cpu_s", "flexdof/decode cpu_s"]
     order += [f"flexdof/flexdof@base {key}" for key in ("wall_s", "cpu_s", "peak_rss_mib")]
+    order += [
+        f"{QUALITY}/{ref} {key}"
+        for ref in ("flexdof", "decode", "focus-stack")
+        for key in ("wall_s", "cpu_s", "peak_rss_mib")
+    ]
     for name, res in results.items():
         for key in (k for k in order if k in res["ratios"]):
             r = res["ratios"][key]
@@ -455,6 +477,12 @@ def main() -> int:
         help="another flexdof checkout (e.g. `git worktree add ../base COMMIT`) run in the "
         "same rounds as 'flexdof@base', for before/after ratios",
     )
+    parser.add_argument(
+        "--quality",
+        action="store_true",
+        help="also time `--method multiframe` (the quality method) in the same rounds; "
+        "writes vs_peer_quality.md",
+    )
     args = parser.parse_args()
     if args.repeats < 1:
         parser.error("--repeats must be >= 1")
@@ -468,7 +496,7 @@ def main() -> int:
     env = environment(peer)
     results, md = (scaling if args.scaling else compare)(args, peer, note, log)
     env["loadavg_end"] = os.getloadavg()
-    name = "scaling" if args.scaling else "vs_peer"
+    name = "scaling" if args.scaling else ("vs_peer_quality" if args.quality else "vs_peer")
     md += (
         "\n\nMachine: "
         + ", ".join(f"{k} {v}" for k, v in env.items() if k not in ("loadavg_start", "loadavg_end"))
