@@ -73,9 +73,28 @@ def test_estimate_solves_the_normal_equations(lam):
     got = np.fft.irfft2(multiframe.wiener_estimate(y_fft, k_fft, lam, d2), s=shape)
     # the DC term is unregularised in both; the dense system's tiny ridge moves it by ~1e-10
     np.testing.assert_allclose(got, dense, atol=1e-8)
+    spectra, power = multiframe.kernel_spectra(kernels, shape)
+    again = multiframe.wiener_estimate(y_fft, spectra, lam, d2, power)
+    np.testing.assert_allclose(np.fft.irfft2(again, s=shape), dense, atol=1e-8)
     flipped = np.stack([_kernel_fft(k[::-1, ::-1], shape, np.float64) for k in kernels])
     other = np.fft.irfft2(multiframe.wiener_estimate(y_fft, flipped, lam, d2), s=shape)
     assert np.max(np.abs(other - dense)) > 1e-2
+
+
+def test_kernel_spectra_real_for_symmetric_kernels():
+    """A kernel symmetric under a half turn has a real spectrum (kept real); an asymmetric one
+    keeps its phase; the power is sum |K|^2 (against numpy's FFT of the rolled kernel)."""
+    shape = (12, 10)
+    disc = np.array([[0, 1, 0], [1, 2, 1], [0, 1, 0]], float) / 6
+    spur = _spur(5, 1)
+    spectra, power = multiframe.kernel_spectra([disc, spur], shape)
+    assert np.isrealobj(spectra[0]) and np.iscomplexobj(spectra[1])
+    for k, got in zip((disc, spur), spectra):
+        grid = np.zeros(shape)
+        grid[: k.shape[0], : k.shape[1]] = k
+        want = np.fft.rfft2(np.roll(grid, (-(k.shape[0] // 2), -(k.shape[1] // 2)), (0, 1)))
+        np.testing.assert_allclose(got, want, atol=1e-12)
+    np.testing.assert_allclose(power, sum(np.abs(s) ** 2 for s in spectra), atol=1e-12)
 
 
 # ----------------------------------------------------------------------------- depth and restore

@@ -94,11 +94,9 @@ def _grid(frame_shape: tuple[int, int], kernels: Sequence[np.ndarray]):
     return shape, pad
 
 
-def _spectra(frames: np.ndarray, shape: tuple[int, int], pad: int) -> np.ndarray:
+def _spectra(frames: np.ndarray, shape: tuple[int, int], pad: int) -> list[np.ndarray]:
     """rfft2 of each 2-D frame, reflected by ``pad`` and faded to its mean beyond."""
-    return np.stack(
-        [sfft.rfft2(_taper_pad(f, pad, _TAPER_PX, shape), workers=-1) for f in frames]
-    )
+    return [sfft.rfft2(_taper_pad(f, pad, _TAPER_PX, shape), workers=-1) for f in frames]
 
 
 def _crop(x: np.ndarray, frame_shape: tuple[int, int], pad: int) -> np.ndarray:
@@ -106,15 +104,34 @@ def _crop(x: np.ndarray, frame_shape: tuple[int, int], pad: int) -> np.ndarray:
     return x[o : o + frame_shape[0], o : o + frame_shape[1]]
 
 
-def wiener_estimate(y_fft, k_fft, lam: float, d2: np.ndarray) -> np.ndarray:
+def kernel_spectra(kernels: Sequence[np.ndarray], shape: tuple[int, int], dtype=np.float64):
+    """The kernels' rfft2 spectra on ``shape`` (centred), and ``sum_k |K_k|^2``. A kernel
+    symmetric under a half turn (Eqs. 3-4: every lens kernel) has a real spectrum, kept
+    real: the estimate's sum then costs half the multiplications."""
+    spectra, power = [], None
+    for k in kernels:
+        kf = _kernel_fft(k, shape, np.float64)
+        if np.array_equal(k, k[::-1, ::-1]):
+            kf = kf.real
+        kf = kf.astype(dtype if np.isrealobj(kf) else np.result_type(dtype, np.complex64))
+        p = kf * kf if np.isrealobj(kf) else kf.real**2 + kf.imag**2
+        power = p if power is None else power + p
+        spectra.append(kf)
+    return spectra, power
+
+
+def wiener_estimate(y_fft, k_fft, lam: float, d2: np.ndarray, power=None) -> np.ndarray:
     """The multi-frame Wiener estimate (module docstring) on an rfft grid: ``y_fft`` and
-    ``k_fft`` hold one (rows, cols//2+1) spectrum per frame, ``d2`` is ``|D|^2``. Summed
-    frame by frame: two spectra of temporaries, whatever the frame count."""
-    num = np.zeros(d2.shape, dtype=np.complex128)
-    den = lam * d2
+    ``k_fft`` hold one (rows, cols//2+1) spectrum per frame, ``d2`` is ``|D|^2``, ``power``
+    ``sum_k |K_k|^2`` if known (:func:`kernel_spectra`). Summed frame by frame: a spectrum
+    of temporaries whatever the frame count."""
+    num = None
     for kf, yf in zip(k_fft, y_fft):
-        num += np.conj(kf) * yf
-        den += kf.real**2 + kf.imag**2
+        term = yf * (np.conj(kf) if np.iscomplexobj(kf) else kf)
+        num = term if num is None else np.add(num, term, out=num)
+    if power is None:
+        power = sum(np.abs(kf) ** 2 for kf in k_fft)
+    den = power + lam * d2
     den[den <= 0] = 1.0  # only at DC with lam |D|^2 = 0 and every kernel zero there: no data
     return num / den
 
@@ -157,8 +174,8 @@ def depth_index(
     best = np.full(frame_shape, np.inf, dtype=np.float32)
     index = np.zeros(frame_shape, dtype=np.int32)
     for j, ks in enumerate(kernels):
-        k_fft = [_kernel_fft(k, shape, np.float64) for k in ks]
-        x_fft = wiener_estimate(y_fft, k_fft, lam, d2)
+        k_fft, power = kernel_spectra(ks, shape)
+        x_fft = wiener_estimate(y_fft, k_fft, lam, d2, power)
         residual = np.zeros(frame_shape, dtype=np.float64)
         for kf, yf in zip(k_fft, y_fft):
             r = _crop(sfft.irfft2(kf * x_fft - yf, s=shape, workers=-1), frame_shape, pad)
@@ -289,16 +306,17 @@ def restore(
     kernels = {j: kernels_at(float(depths[j]), 1.0) for j in used}
     every = [k for ks in kernels.values() for k in ks] or [np.ones((1, 1))]
     shape, pad = _grid((rows, cols), every)
-    d2 = _laplacian_spectrum(shape, np.float64)
+    d2 = _laplacian_spectrum(shape, np.float32)
     channels = f4.shape[3]
     lam = [regularisation(f4[..., c], fb[..., c]) for c in range(channels)]
     y_fft = [_spectra(f4[..., c], shape, pad) for c in range(channels)]
     out = fb * (1.0 - weight)[..., np.newaxis]
     for step, j in enumerate(used):
-        k_fft = [_kernel_fft(k, shape, np.float64).astype(np.complex64) for k in kernels[j]]
+        k_fft, power = kernel_spectra(kernels[j], shape, np.float32)
         mask = weight * (index == j)
         for c in range(channels):
-            x = sfft.irfft2(wiener_estimate(y_fft[c], k_fft, lam[c], d2), s=shape, workers=-1)
+            x_fft = wiener_estimate(y_fft[c], k_fft, np.float32(lam[c]), d2, power)
+            x = sfft.irfft2(x_fft, s=shape, workers=-1)
             out[..., c] += mask * _crop(x, (rows, cols), pad)
         if progress is not None:
             progress(step + 1, len(used))
