@@ -214,7 +214,7 @@ def add_method(
         help="deconvolution: Wiener or Richardson-Lucy"
         + (
             "; multiframe: the quality method, each depth restored from all frames "
-            "(for stacks that follow the model; 2-11x slower, 3-4x the memory)"
+            "(for stacks that follow the model; 2-8x slower, about 3x the memory)"
             if "multiframe" in methods
             else ""
         ),

@@ -5,7 +5,7 @@ average's bilinear warp low-passes each frame, which an average hides and a fram
 it is does not), then restored per depth from all of them
 (:func:`pipeline.core.multiframe.restore`), blended into the Sec. 9 result near depth
 changes and clipped pixels. Holds every frame and its spectrum in memory: pcb7 (7 frames
-of 3 Mpx) peaks at 1.3 GiB, pcb10 (10 frames) at 1.8 GiB, 3-4x the default; 7-11x its time
+of 3 Mpx) peaks at 1.2 GiB, pcb10 (10 frames) at 1.6 GiB, about 3x the default; 7-8x its time
 (``tests/benchmarks/results/speed/vs_peer_quality.md``).
 """
 
