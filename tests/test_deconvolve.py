@@ -278,6 +278,29 @@ def test_kernel_variance_equals_direct_spectral_variance():
     assert np.allclose(variance, direct, atol=1e-12)
 
 
+def test_kernel_variance_on_a_grid_smaller_than_its_lags():
+    """A blur as wide as a small frame: the kernels' lags (2k - 1 = 17) exceed the 12 x 10
+    grid. V must then be mean |K_u - K|^2 of the kernels wrapped onto the grid (explicit
+    loops, as a periodic grid sees them), not an error."""
+    rng = np.random.default_rng(4)
+    samples = rng.random((4, 9, 9))
+    samples[:, :, :3] *= 3.0  # asymmetric
+    samples /= samples.sum(axis=(1, 2), keepdims=True)
+    mean = samples.mean(axis=0)
+    shape = (12, 10)
+    variance = dc.kernel_variance(samples, mean)((12, 6))
+
+    def wrapped_rfft(k):
+        grid = np.zeros(shape)
+        for i in range(9):
+            for j in range(9):
+                grid[(i - 4) % shape[0], (j - 4) % shape[1]] += k[i, j]
+        return np.fft.rfft2(grid)
+
+    direct = np.mean([np.abs(wrapped_rfft(k) - wrapped_rfft(mean)) ** 2 for k in samples], axis=0)
+    np.testing.assert_allclose(variance, direct, atol=1e-12)
+
+
 def test_kernel_samples_shape_is_checked():
     with pytest.raises(InputError, match="kernel_samples"):
         dc.kernel_variance(np.ones((3, 5, 5)), np.ones((7, 7)))

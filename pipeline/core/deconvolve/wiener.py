@@ -140,7 +140,15 @@ def kernel_variance(samples, kernel):
 
     def on_grid(rshape: tuple[int, int]) -> np.ndarray:
         shape = (rshape[0], 2 * (rshape[1] - 1))  # grids here are even (see _fast_len)
-        return np.abs(_kernel_fft(autocorrelation, shape, np.float64))
+        if all(a <= g for a, g in zip(autocorrelation.shape, shape)):
+            return np.abs(_kernel_fft(autocorrelation, shape, np.float64))
+        # lags beyond a small frame's grid (a blur as wide as the frame): the spectrum
+        # sampled on a periodic grid is that of the lags folded onto it
+        rows = (np.arange(full[0]) - full[0] // 2) % shape[0]
+        cols = (np.arange(full[1]) - full[1] // 2) % shape[1]
+        folded = np.zeros(shape)
+        np.add.at(folded, (rows[:, np.newaxis], cols[np.newaxis, :]), autocorrelation)
+        return np.abs(sfft.rfft2(folded))
 
     return on_grid
 
