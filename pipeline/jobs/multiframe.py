@@ -4,8 +4,9 @@ The frames are read again and warped onto the reference with Lanczos interpolati
 average's bilinear warp low-passes each frame, which an average hides and a frame used as
 it is does not), then restored per depth from all of them
 (:func:`pipeline.core.multiframe.restore`), blended into the Sec. 9 result near depth
-changes, at clipped pixels and where the per-frame model does not hold. Holds every frame and its spectrum in memory: pcb7 (7 frames
-of 3 Mpx) peaks at 1.2 GiB, pcb10 (10 frames) at 1.6 GiB, about 3x the default; 7-8x its time
+changes, at clipped pixels and where the per-frame model does not hold. Holds every frame
+and its spectrum in memory: pcb7 (7 frames of 3 Mpx) peaks at 1.2 GiB, pcb10 (10 frames)
+at 1.6 GiB, about 3x the default; 7-8x its time
 (``tests/benchmarks/results/speed/vs_peer_quality.md``).
 """
 
