@@ -177,6 +177,17 @@ def test_a_model_that_over_restores_is_held_to_the_frames_detail():
     assert np.max((detail / sharpest)[6:-6, 6:-6]) < 2.0
 
 
+def test_unexplained_shares_rank_alignments():
+    """The same frames aligned and 3 px out of register: the model explains the aligned
+    ones far better (the measure the main job chooses an alignment by)."""
+    _, frames, kernels_at = _two_depth_stack(0.005)
+    moved = np.stack([frames[0], np.roll(frames[1], 3, 1), np.roll(frames[2], -3, 1)])
+    aligned, shifted = multiframe.unexplained_shares(
+        [frames, moved], kernels_at, np.array([0.0, 1.0, 2.0])
+    )
+    assert aligned < 0.2 * shifted
+
+
 def test_fit_weight():
     low, high = multiframe.FIT_SHARE
     got = multiframe.fit_weight(np.array([0.0, low, (low + high) / 2, high, 10.0]))

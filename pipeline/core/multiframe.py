@@ -153,6 +153,7 @@ def depth_index(
     lam: float,
     *,
     scale: float = 1.0,
+    cache: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per pixel, the index of the candidate depth that explains 2-D ``frames`` best, and
     how well: the residual there as a share of the frames' local variance.
@@ -164,17 +165,23 @@ def depth_index(
     detail the model leaves unexplained: 0.005-0.2 (median) on the synthetic stacks of issue
     13, which follow the model, 2.7-2.8 on beetle and amber, whose frames it does not fit.
     ``kernels_at(d, scale)`` gives the frames' kernels at depth ``d`` for frames resized by
-    ``scale``.
+    ``scale``; ``cache`` (a dict) keeps their spectra for another call on frames of the same
+    shape.
     """
     frame_shape = frames.shape[1:]
-    kernels = [kernels_at(float(d), scale) for d in depths]
+    cache = {} if cache is None else cache
+    if "kernels" not in cache:
+        cache["kernels"] = [kernels_at(float(d), scale) for d in depths]
+    kernels = cache["kernels"]
     shape, pad = _grid(frame_shape, [k for ks in kernels for k in ks])
     y_fft = _spectra(frames, shape, pad)
     d2 = _laplacian_spectrum(shape, np.float64)
     best = np.full(frame_shape, np.inf, dtype=np.float32)
     index = np.zeros(frame_shape, dtype=np.int32)
     for j, ks in enumerate(kernels):
-        k_fft, power = kernel_spectra(ks, shape)
+        if j not in cache:
+            cache[j] = kernel_spectra(ks, shape)
+        k_fft, power = cache[j]
         x_fft = wiener_estimate(y_fft, k_fft, lam, d2, power)
         residual = np.zeros(frame_shape, dtype=np.float64)
         for kf, yf in zip(k_fft, y_fft):
@@ -190,6 +197,26 @@ def depth_index(
         detail += cv2.GaussianBlur(band * band, (0, 0), RESIDUAL_SIGMA_PX)
     tiny = np.float32(1e-12 * max(float(np.max(detail)), 1e-30))
     return index, best / np.maximum(detail, tiny)
+
+
+def unexplained_shares(
+    alternatives: Sequence[np.ndarray], kernels_at: KernelsAt, depths: np.ndarray
+) -> list[float]:
+    """For each stack of aligned 2-D frames in ``alternatives`` (the same frames aligned in
+    different ways), the median share of their fine detail the blur model leaves unexplained
+    (:func:`depth_index`), away from a border of 1/16 of the frame: how well they are aligned,
+    by a measure that, unlike a correlation, expects each depth's blur to differ between
+    frames (``pipeline.jobs.stack`` chooses an alignment by it). The kernels' spectra are
+    computed once for all alternatives."""
+    cache: dict = {}
+    shares = []
+    for frames in alternatives:
+        f = np.asarray(frames, dtype=np.float32)
+        lam = regularisation(f, f.mean(axis=0))
+        _, unexplained = depth_index(f, kernels_at, depths, lam, cache=cache)
+        r, c = (max(1, n // 16) for n in unexplained.shape)
+        shares.append(float(np.median(unexplained[r:-r, c:-c])))
+    return shares
 
 
 def fit_weight(unexplained: np.ndarray) -> np.ndarray:

@@ -25,7 +25,7 @@ import cv2
 import dask
 import numpy as np
 
-from pipeline.core import align, defocus
+from pipeline.core import align, defocus, multiframe
 from pipeline.core.frame_support import (
     FrameSupport,
     clip_to_frames,
@@ -34,7 +34,7 @@ from pipeline.core.frame_support import (
     quiet_flat_areas,
 )
 from pipeline.core.lens import Lens
-from pipeline.core.stack_kernel import positions_from_scales, stack_kernel
+from pipeline.core.stack_kernel import frame_kernels, positions_from_scales, stack_kernel
 from pipeline.core.weights import constant_speed_weights
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
@@ -58,6 +58,11 @@ from pipeline.parallel.scheduler import _TaskProgress, local_workers
 log = logging.getLogger(__name__)
 
 PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
+# The estimated alignment is kept only if the blur model explains the aligned frames clearly
+# better than unaligned ones (issue 13: ECC, biased by the frames' depth-dependent blur,
+# invents a breathing of up to 1.9% on stacks without any); judged at this resolution
+CHOICE_SIDE_PX = 128
+CHOICE_MARGIN = 0.1  # the estimate must leave under (1 - this) of the identity's unexplained
 # The blur-span fit matches a pillbox core to the frames; real lenses' defocus also has
 # a wide soft tail, which a kernel of the fitted span leaves as haze (issue 13: pcb7's
 # far barcode kept 45 of its frame's 68 contrast). Twice the fit restored it on pcb7,
@@ -216,7 +221,7 @@ def align_stack(
     if options.align == "estimate" or (fit_blur_span and not (lens is not None and absolute)):
         previews = read_previews(stack.files, options.align_max_side_px, progress)
     progress("align", 0, 1)
-    alignments = _align(stack, options, positions, absolute, previews, shape)
+    alignments = _align(stack, options, positions, absolute, previews, shape, lens)
     progress("align", 1, 1)
     timings = {"align": time.perf_counter() - t0}
     positions_source = stack.positions_source or "stack.toml"
@@ -524,7 +529,7 @@ def _describe_frames(stack: Stack) -> str:
     return f"{stack.base_dir} ({len(files)} frames, {files[0].name} .. {files[-1].name})"
 
 
-def _align(stack, options, positions, absolute, previews, shape):
+def _align(stack, options, positions, absolute, previews, shape, lens=None):
     """Per-frame homographies to the middle frame (Sec. 9), at full resolution."""
     n = len(stack)
     if options.align == "none":
@@ -545,4 +550,49 @@ def _align(stack, options, positions, absolute, previews, shape):
             log.warning("frame %s: alignment fell back (%s)", path.name, a.message)
         h = align.rescale_homography(a.homography, previews[0].shape, shape[:2])
         alignments.append(dataclasses.replace(a, homography=h))
+    if lens is not None and absolute and positions is not None and n >= 3:
+        return _keep_if_explained(alignments, previews, positions, lens, shape)
     return alignments
+
+
+def _aligned_small(previews, homographies, shape) -> tuple[np.ndarray, float]:
+    """The previews at ``CHOICE_SIDE_PX`` aligned by full-resolution ``homographies``
+    (Lanczos), and their downscale factor."""
+    factor = max(1.0, max(shape[:2]) / CHOICE_SIDE_PX)
+    size = (max(8, round(shape[1] / factor)), max(8, round(shape[0] / factor)))
+    small = []
+    for preview, h in zip(previews, homographies):
+        reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
+        hr = align.rescale_homography(h, shape[:2], reduced.shape)
+        small.append(align.warp(reduced, hr, reduced.shape, interpolation="lanczos"))
+    return np.stack(small), factor
+
+
+def _keep_if_explained(alignments, previews, positions, lens, shape):
+    """The estimated ``alignments``, or the identity where the lens's blur model explains the
+    unaligned frames about as well (``CHOICE_MARGIN``): ECC's correlation peak moves with the
+    blur differences between frames, the model predicts them (issue 13;
+    ``tests/benchmarks/results/align/align_bias_planes.md``)."""
+    moved, factor = _aligned_small(previews, [a.homography for a in alignments], shape)
+    still, _ = _aligned_small(previews, [np.eye(3)] * len(alignments), shape)
+
+    def kernels_at(x: float, scale: float) -> list[np.ndarray]:
+        return frame_kernels(
+            positions, x, lens=lens, absolute=True, blur_span_px=None, scale=scale / factor
+        )
+
+    # the frames' own focus positions as the depths: the choice needs no depth beyond them
+    estimated, identity = multiframe.unexplained_shares(
+        [moved, still], kernels_at, np.unique(positions)
+    )
+    if estimated < (1.0 - CHOICE_MARGIN) * identity:
+        return alignments
+    log.info(
+        "alignment: the frames unaligned are explained as well (%.4g against %.4g): identity",
+        identity,
+        estimated,
+    )
+    return [
+        align.Alignment(np.eye(3), 1.0, "identity (the estimate explained no more)")
+        for _ in alignments
+    ]
