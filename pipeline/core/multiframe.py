@@ -32,7 +32,7 @@ blends to the caller's fallback (the main job's Sec. 9 result, whose kernel is t
 for every depth): :func:`restore`.
 
 On the synthetic scenes of issue 13 this gains 1.0-3.0 dB over the default when noisy, at
-3-6x its time (``tests/benchmarks/results/real_regions/synthetic_guard.md``); on the
+1.5-3.4x its time (``tests/benchmarks/results/real_regions/synthetic_guard.md``); on the
 real JPEG stacks, whose blur the per-frame pillbox model fits only roughly, it does not
 beat the default (``tests/benchmarks/results/quality_method/README.md``).
 """
