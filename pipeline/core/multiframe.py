@@ -329,10 +329,13 @@ def restore(
     index = cv2.resize(index_small, (cols, rows), interpolation=cv2.INTER_NEAREST)
     fit = cv2.resize(fit_weight(unexplained), (cols, rows), interpolation=cv2.INTER_LINEAR)
     weight = steady_weight(index, STEADY_RADIUS_PX, blocked) * fit
+    counts = np.bincount(index.ravel(), minlength=len(depths))
     used = [j for j in range(len(depths)) if np.any((index == j) & (weight > 0))]
+    if not used:  # the model holds nowhere: the fallback, without the full-size spectra
+        info = {"share": 0.0, "depths": [int(c) for c in counts]}
+        return (fb if colour else fb[..., 0]).copy(), info
     kernels = {j: kernels_at(float(depths[j]), 1.0) for j in used}
-    every = [k for ks in kernels.values() for k in ks] or [np.ones((1, 1))]
-    shape, pad = _grid((rows, cols), every)
+    shape, pad = _grid((rows, cols), [k for ks in kernels.values() for k in ks])
     d2 = _laplacian_spectrum(shape, np.float32)
     channels = f4.shape[3]
     lam = [regularisation(f4[..., c], fb[..., c]) for c in range(channels)]
@@ -349,6 +352,5 @@ def restore(
             progress(step + 1, len(used))
     supported = supported_weight(out.mean(axis=2), grey)
     out = fb + supported[..., np.newaxis] * (out - fb)
-    counts = np.bincount(index.ravel(), minlength=len(depths))
     info = {"share": float(np.mean(weight * supported)), "depths": [int(c) for c in counts]}
     return (out if colour else out[..., 0]), info

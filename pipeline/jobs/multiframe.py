@@ -17,6 +17,7 @@ import numpy as np
 from pipeline.core import align, multiframe
 from pipeline.core.frame_support import FrameSupport, clip_to_frames, quiet_flat_areas
 from pipeline.core.stack_kernel import frame_kernels
+from pipeline.errors import InputError
 from pipeline.io.read import read_frame
 from pipeline.jobs.options import Progress, _no_progress
 
@@ -46,12 +47,18 @@ def restore_multiframe(
     whose overshoot, on beetle, left rims of 0.8-1.1 levels (two more halo losses).
     """
     files = aligned.stack.files
+    positions = np.asarray(aligned.positions, dtype=np.float64)
+    if np.unique(positions).size < 2:
+        raise InputError(
+            f"{aligned.stack.base_dir}: --method multiframe restores each depth from frames "
+            f"focused at different depths, but all {len(files)} frames have the same focus "
+            "position; fix the positions in stack.toml or use --method wiener"
+        )
     frames = np.empty((len(files), *np.shape(fallback)), dtype=np.float32)
     for i, (path, a) in enumerate(zip(files, aligned.alignments)):
         frame = read_frame(path)
         frames[i] = align.warp(frame, a.homography, aligned.shape, interpolation="lanczos")
         progress("multiframe", i + 1, 2 * len(files))
-    positions = np.asarray(aligned.positions, dtype=np.float64)
 
     def kernels_at(x: float, scale: float) -> list[np.ndarray]:
         return frame_kernels(

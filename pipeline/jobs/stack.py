@@ -556,15 +556,17 @@ def _align(stack, options, positions, absolute, previews, shape, lens=None):
 
 
 def _aligned_small(previews, homographies, shape) -> tuple[np.ndarray, float]:
-    """The previews at ``CHOICE_SIDE_PX`` aligned by full-resolution ``homographies``
-    (Lanczos), and their downscale factor."""
+    """The previews at ``CHOICE_SIDE_PX``, aligned (Lanczos) by full-resolution
+    ``homographies`` (``None``: as they are), and their downscale factor."""
     factor = max(1.0, max(shape[:2]) / CHOICE_SIDE_PX)
     size = (max(8, round(shape[1] / factor)), max(8, round(shape[0] / factor)))
     small = []
-    for preview, h in zip(previews, homographies):
+    for i, preview in enumerate(previews):
         reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
-        hr = align.rescale_homography(h, shape[:2], reduced.shape)
-        small.append(align.warp(reduced, hr, reduced.shape, interpolation="lanczos"))
+        if homographies is not None:
+            hr = align.rescale_homography(homographies[i], shape[:2], reduced.shape)
+            reduced = align.warp(reduced, hr, reduced.shape, interpolation="lanczos")
+        small.append(reduced)
     return np.stack(small), factor
 
 
@@ -574,7 +576,7 @@ def _keep_if_explained(alignments, previews, positions, lens, shape):
     blur differences between frames, the model predicts them (issue 13;
     ``tests/benchmarks/results/align/align_bias_planes.md``)."""
     moved, factor = _aligned_small(previews, [a.homography for a in alignments], shape)
-    still, _ = _aligned_small(previews, [np.eye(3)] * len(alignments), shape)
+    still, _ = _aligned_small(previews, None, shape)
 
     def kernels_at(x: float, scale: float) -> list[np.ndarray]:
         return frame_kernels(
