@@ -24,7 +24,7 @@ the regions as good as focus-stack's on every measure from 0/0/0/0 to 0/8/4/7 of
 losses 27 -> 0 of 36, flat-area noise losses 34 -> 0), and on stacks that follow the
 paper's model they cost at most 0.01 dB (+0.1-0.4 dB on the three-plane scenes). The
 rest is ``flexdof stack --frame-guard``: 6-8 of 9 regions on the real stacks, but on
-stacks that follow the model 0.5-1.3 dB below the default (4.2 dB with a fitted, doubled
+stacks that follow the model up to 3.0 dB below the default (4.3 dB with a fitted, doubled
 blur span) and 1.2-1.4x the time (``tests/benchmarks/results/real_regions/NOTE.md``).
 """
 

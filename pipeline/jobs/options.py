@@ -38,7 +38,7 @@ class StackOptions:
     # their range, their sharpest frame where it shows more detail, a single frame's noise,
     # twice the fitted blur span. Better on real photographs (issue 13: 6-8/9 regions as
     # good as focus-stack; the default 2-8/9), worse on stacks that follow the paper's model
-    # (0.5-1.3 dB below the default on synthetic scenes, 4.2 dB with a fitted span) and
+    # (up to 3.0 dB below the default on synthetic scenes, 4.3 dB with a fitted span) and
     # 17-36% slower: off by default
     frame_guard: bool = False
     # keep the result to the aligned frames (pipeline.core.frame_support, pipeline.jobs.ends):
