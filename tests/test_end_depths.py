@@ -4,6 +4,7 @@ frames' own lens PSFs, and the main job's gain on a plane beyond the range."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 from skimage import data
@@ -141,3 +142,54 @@ def test_end_depths_ignore_frames_at_the_end_frames_own_position(tmp_path, sharp
     ends, _ = defocus.end_depths(frames, positions, span)
     assert all(np.isfinite(end.beyond) and 0 <= end.beyond <= 0.5 for end in ends)
     assert {e.frame: e.beyond for e in ends}[0] > 0.1  # still found from the other frames
+
+
+# (not "analytic": it reads no previews either, but these frames are rendered without the
+# lens's breathing, which it would apply)
+@pytest.mark.parametrize("alignment", ["estimate", "none"])
+def test_the_main_job_restores_a_plane_at_the_near_end_frame(tmp_path, sharp, alignment):
+    """Sec. 4.1's end effect inside the range: the near plane (500 mm) is in focus in the
+    last frame; the stack's IPSF, wider than a middle depth's, but narrower than the end
+    depth's, leaves it soft unless the end's own kernel is used. With every alignment: the
+    ones that read no previews stream the ends' own (``jobs.stack._streamed_end_previews``)."""
+    make_stack(tmp_path, sharp, list(PLANES_MM), positions_for(500, 1600, 9), noise=0.01)
+
+    def run(name, **options):
+        return process_stack(
+            tmp_path, tmp_path / name, StackOptions(encoding="float32", align=alignment, **options)
+        )
+
+    default, plain = run("d.tif"), run("p.tif", frame_range=False)
+    near = slice(8, 256 // 3 - 8)  # the 500 mm band, away from the planes' borders
+    gain = psnr(default.image[:, near], sharp[:, near]) - psnr(plain.image[:, near], sharp[:, near])
+    assert gain > 3.0  # measured: 28.07 -> 33.42 dB (28.12 correcting only beyond the ends)
+    ends = {e["frame"]: e for e in default.sidecar["frame_range"]["beyond_ends"]}
+    assert ends["frame_08.tif"]["beyond_range"] < 0.05  # at the end frame, not beyond it
+
+
+def test_end_depths_from_streamed_focus_maps_match_those_from_all_frames(tmp_path, sharp):
+    positions = _stack(tmp_path, sharp, 450, 1200)
+    frames = [read_frame(f).mean(axis=2) for f in sorted(tmp_path.glob("frame_*.tif"))]
+    span = float(load_lens(LENS).blur_px(positions.max(), positions.min()))
+    order = np.arange(len(frames))[::-1]  # frames added out of index order
+    maps = defocus.FocusMaps()
+    for i in order:
+        maps.add(int(i), frames[i])
+    # the sharpest frame per pixel, by hand: argmax of the smoothed squared Laplacian
+    focus = [
+        cv2.GaussianBlur(cv2.Laplacian(f / f.mean(), cv2.CV_32F, ksize=3) ** 2, (0, 0), 3.0)
+        for f in frames
+    ]
+    want = np.argmax(np.stack(focus), axis=0)
+    best = np.max(np.stack(focus), axis=0)
+    ties = np.sum(np.stack(focus) == best, axis=0) > 1
+    assert np.array_equal(maps.sharpest[~ties], want[~ties])
+    needed = defocus.end_frames(positions)
+    assert needed == [0, 1, 2, 3, 5, 6, 7, 8]  # 9 frames: each end and the three next to it
+    kept = {i: frames[i] for i in needed}  # the streamed job keeps only these
+    streamed, _ = defocus.end_depths(kept, positions, span, maps=maps)
+    full, _ = defocus.end_depths(frames, positions, span)
+    assert [(e.frame, e.beyond, e.pixels) for e in streamed] == [
+        (e.frame, e.beyond, e.pixels) for e in full
+    ]
+    assert streamed[0].beyond > 0.1  # the far plane, beyond the range (not a vacuous match)

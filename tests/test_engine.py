@@ -167,12 +167,17 @@ def peak_memory(folder, n_frames, shape=(384, 384, 3)):
 
 
 def test_peak_memory_is_flat_in_the_number_of_frames(tmp_path):
-    (tmp_path / "a").mkdir()
-    (tmp_path / "b").mkdir()
-    peak8 = peak_memory(tmp_path / "a", 8)
-    peak32 = peak_memory(tmp_path / "b", 32)
+    # the least of two runs each: one run's peak moves by up to 3 frames with the threads'
+    # timing (8 frames: 12.2-15.7 frames' worth), the least of two by far less
+    peaks = {}
+    for n in (8, 32):
+        runs = []
+        for k in range(2):
+            (tmp_path / f"{n}_{k}").mkdir()
+            runs.append(peak_memory(tmp_path / f"{n}_{k}", n))
+        peaks[n] = min(runs)
     frame_bytes = 384 * 384 * 3 * 4
-    assert peak32 < peak8 + 3 * frame_bytes, (peak8 / frame_bytes, peak32 / frame_bytes)
+    assert peaks[32] < peaks[8] + 3 * frame_bytes, {n: p / frame_bytes for n, p in peaks.items()}
 
 
 # ----------------------------------------------------------------------------- bad input

@@ -47,19 +47,53 @@ def _pairs(n: int) -> list[tuple[int, int]]:
 MIN_MASK_PX = 50  # fewer pixels where a frame is the sharpest say nothing of its blur
 
 
+def _normalised(frame: np.ndarray) -> np.ndarray:
+    """A grey frame divided by its mean (the fits compare frames of any exposure)."""
+    return np.asarray(frame, np.float32) / max(float(np.mean(frame)), 1e-12)
+
+
+class FocusMaps:
+    """The sharpest frame per pixel of a stack and its focus measure, built one frame at a
+    time (so a stack of any length needs two maps, not all its frames).
+
+    Frames are added with their index; a pixel's sharpest frame is the first of the best
+    (as ``np.argmax``) when they are added in index order.
+    """
+
+    def __init__(self):
+        self.sharpest: np.ndarray | None = None
+        self.best: np.ndarray | None = None
+
+    def add(self, index: int, grey: np.ndarray) -> None:
+        """Add frame ``index`` (aligned, grey)."""
+        focus = _focus_measure(_normalised(grey))
+        if self.best is None:
+            self.best, self.sharpest = focus, np.full(focus.shape, index, np.intp)
+            return
+        better = focus > self.best
+        self.best = np.where(better, focus, self.best)
+        self.sharpest[better] = index
+
+    def masks(self, indices) -> dict[int, np.ndarray]:
+        """Per frame in ``indices``, the textured pixels (the 30% best in focus) 5% or more
+        from the borders where it is the sharpest."""
+        textured = self.best > np.percentile(self.best, 70)
+        border = max(4, int(0.05 * min(self.best.shape)))
+        interior = np.zeros_like(textured)
+        interior[border:-border, border:-border] = True
+        return {i: (self.sharpest == i) & textured & interior for i in indices}
+
+
 def _sharpest_masks(frames):
     """Mean-normalised grey frames, the sharpest frame per pixel, and per frame the
     textured pixels (the 30% best in focus) 5% or more from the borders where it is
     the sharpest."""
-    grey = [np.asarray(f, np.float32) / max(float(np.mean(f)), 1e-12) for f in frames]
-    focus = np.stack([_focus_measure(g) for g in grey])
-    sharpest = np.argmax(focus, axis=0)
-    best = focus.max(axis=0)
-    textured = best > np.percentile(best, 70)
-    border = max(4, int(0.05 * min(grey[0].shape)))
-    interior = np.zeros_like(textured)
-    interior[border:-border, border:-border] = True
-    return grey, sharpest, [(sharpest == i) & textured & interior for i in range(len(grey))]
+    grey = [_normalised(f) for f in frames]
+    maps = FocusMaps()
+    for i, f in enumerate(frames):
+        maps.add(i, f)
+    masks = maps.masks(range(len(grey)))
+    return grey, maps.sharpest, [masks[i] for i in range(len(grey))]
 
 
 def _predict(grey: np.ndarray, diameter_px: float) -> np.ndarray:
@@ -156,7 +190,14 @@ class EndDepth:
     pixels: int
 
 
-def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0):
+def end_frames(positions) -> list[int]:
+    """The frames :func:`end_depths` reads when given the stack's :class:`FocusMaps`: the
+    first and last frame in focus position and the three next to each."""
+    order = np.argsort(np.asarray(positions, dtype=np.float64), kind="stable")
+    return sorted({int(i) for i in (*order[:4], *order[-4:])})
+
+
+def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0, maps=None):
     """How far beyond each end of an aligned focal stack its end frames' content lies,
     and the sharpest frame per pixel (at the frames' resolution).
 
@@ -173,14 +214,18 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0):
 
     Parameters
     ----------
-    frames : list of 2-D float arrays
-        Aligned grey frames (reduced resolution is fine).
+    frames : list of 2-D float arrays, or a mapping from frame index to one
+        Aligned grey frames (reduced resolution is fine). With ``maps``, only the frames
+        :func:`end_frames` names are read (a mapping may hold just those).
     positions : array_like, shape (n,)
         Focus positions, in any coordinate linear in image distance.
     span_px : float
         The blur span ``D`` (full-resolution px).
     downscale : float
         Full-resolution size / the frames' size.
+    maps : FocusMaps, optional
+        The sharpest frame per pixel over all ``n`` frames, built beforehand (a stack
+        streamed one frame at a time); else built from ``frames``.
 
     Returns
     -------
@@ -190,10 +235,16 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0):
         The sharpest frame per pixel (by the local energy of the Laplacian).
     """
     x = np.asarray(positions, dtype=np.float64)
-    if len(frames) < 2 or x.size != len(frames) or np.ptp(x) <= 0 or not span_px > 0:
+    given = x.size if maps is not None else len(frames)
+    if x.size < 2 or x.size != given or np.ptp(x) <= 0 or not span_px > 0:
         raise InputError("need >= 2 frames at different focus positions and a blur span > 0")
     x = (x - x.min()) / np.ptp(x)
-    grey, sharpest, masks = _sharpest_masks(frames)
+    if maps is None:
+        grey, sharpest, masks = _sharpest_masks(frames)
+    else:
+        read = end_frames(x)
+        grey = {i: _normalised(frames[i]) for i in read}
+        sharpest, masks = maps.sharpest, maps.masks(read)
     order = np.argsort(x, kind="stable")
     ends = []
     for end, others in ((order[0], order[1:4]), (order[-1], order[-2:-5:-1])):

@@ -156,16 +156,41 @@ def read_previews(
     return previews
 
 
+def _fit_factor(full_shape) -> float:
+    """Full-resolution size / the defocus fit's (never upscale a small frame)."""
+    return max(1.0, max(full_shape[:2]) / PREVIEW_SIDE_PX)
+
+
+def _fit_preview(preview, alignment, full_shape) -> np.ndarray:
+    """A preview at the defocus-fit resolution, aligned by its full-resolution homography."""
+    factor = _fit_factor(full_shape)
+    size = (max(1, round(full_shape[1] / factor)), max(1, round(full_shape[0] / factor)))
+    reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
+    h = align.rescale_homography(alignment.homography, full_shape[:2], reduced.shape)
+    return align.warp(reduced, h, reduced.shape)
+
+
 def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
     """Aligned copies at the defocus-fit resolution, and their downscale factor."""
-    factor = max(1.0, max(full_shape[:2]) / PREVIEW_SIDE_PX)  # never upscale a small frame
-    small = []
-    for preview, alignment in zip(previews, alignments):
-        size = (max(1, round(full_shape[1] / factor)), max(1, round(full_shape[0] / factor)))
-        reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
-        h = align.rescale_homography(alignment.homography, full_shape[:2], reduced.shape)
-        small.append(align.warp(reduced, h, reduced.shape))
-    return small, factor
+    small = [_fit_preview(p, a, full_shape) for p, a in zip(previews, alignments)]
+    return small, _fit_factor(full_shape)
+
+
+def _streamed_end_previews(aligned: AlignedStack):
+    """What the correction at the ends (:mod:`pipeline.jobs.ends`) needs where the
+    alignment read no previews (``--align none`` or ``analytic``): the aligned previews
+    at the fit's resolution of the frames :func:`pipeline.core.defocus.end_frames` names,
+    their downscale factor, and the stack's :class:`~pipeline.core.defocus.FocusMaps`.
+    Frames are read one at a time (a cheap reduced decode for JPEGs), so memory stays
+    flat in the number of frames."""
+    keep = set(defocus.end_frames(aligned.positions))
+    maps, kept = defocus.FocusMaps(), {}
+    for i, (path, alignment) in enumerate(zip(aligned.stack.files, aligned.alignments)):
+        small = _fit_preview(read_preview(path, PREVIEW_SIDE_PX), alignment, aligned.shape)
+        maps.add(i, small)
+        if i in keep:
+            kept[i] = small
+    return kept, _fit_factor(aligned.shape), maps
 
 
 # ----------------------------------------------------------------------------- phases
@@ -401,6 +426,9 @@ def process_stack(
     if aligned.previews is not None and (needs_fit or want_ends):
         small = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
     aligned.previews = None  # not needed past the alignment: memory flat in the frame count
+    end_previews = None  # what the ends' correction reads, made in the kernel's thread
+    if want_ends:
+        end_previews = (lambda _: (*small, None)) if small is not None else _streamed_end_previews
     with ThreadPoolExecutor(1, thread_name_prefix="flexdof-kernel") as pool:
         kernel_job = pool.submit(
             _stack_ipsf,
@@ -409,7 +437,7 @@ def process_stack(
             blur_span,
             small if needs_fit else None,
             options.frame_guard,
-            ends=small if want_ends else None,
+            ends=end_previews,
         )
         average, clipped, frames = accumulate(
             aligned, weights, options, progress=progress, support=_support(options)
@@ -481,10 +509,11 @@ def _stack_ipsf(
     """The stack's IPSF (:func:`stack_kernel`, Eqs. 5-6), after measuring the blur span
     (:func:`pipeline.core.defocus.estimate_blur_span`) on ``fit``, the aligned previews
     at the fit's resolution and their downscale factor, when given. With the frame
-    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``. With ``ends`` (the same
-    previews), also the kernels of content beyond the range's ends
-    (:func:`pipeline.jobs.ends.end_kernels`; else none). Returns the kernel, its
-    per-depth samples, its summary and the end kernels."""
+    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``. With ``ends``, a callable
+    of ``aligned`` that yields the ends' aligned previews, their downscale factor and the
+    stack's focus maps (``None``: made from the previews), also the kernels of the
+    content at and beyond the range's ends (:func:`pipeline.jobs.ends.end_kernels`; else
+    none). Returns the kernel, its per-depth samples, its summary and the end kernels."""
     t0 = time.perf_counter()
     if fit is not None:
         small, factor = fit
@@ -511,7 +540,7 @@ def _stack_ipsf(
     beyond = []
     if ends is not None:
         beyond = end_kernels(
-            ends,
+            ends(aligned),
             aligned.positions,
             weights,
             summary["blur_span_px"],
