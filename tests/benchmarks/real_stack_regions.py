@@ -12,7 +12,11 @@ output), splits the common area into a 3x3 grid and
 measures per region sharpness, halo, haze and noise (see ``region_measures.py``
 for what they are and why they cannot be gamed) of flexdof, focus-stack,
 enfuse (``align_image_stack -m`` + ``enfuse --contrast-weight=1 --hard-mask``,
-when installed; cached in ``DIR/work``) and the region's sharpest aligned frame.
+when installed; cached in ``DIR/work``), the region's sharpest aligned frame and
+the frames' composite (per pixel the aligned frame with the most Laplacian energy: a plain
+focus stacker made of the frames' own pixels; the summary counts the regions where it is at
+least as good as focus-stack on haze, a check of how far that measure rewards more than the
+frames show).
 
 Writes ``DIR/real_regions.md`` (per stack and measure: values per region and
 flexdof's verdict against focus-stack; the count of regions where flexdof is at
@@ -266,6 +270,9 @@ def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
     ref = Reference(frames, valid)
     scores = {m: ref.measure(img) for m, img in methods.items()}
     scores["sharpest frame"] = ref.sharpest_frames()
+    # what the frames' own pixels score: per pixel the frame with the most Laplacian energy
+    # (a plain focus stacker)
+    scores["frame composite"] = ref.measure(composite)
     scores = {m: {k: v.tolist() for k, v in s.items()} for m, s in scores.items()}
 
     # crops: flexdof | focus-stack | the region's sharpest frame
@@ -334,6 +341,17 @@ def good_regions(scores: dict, against: str = "focus-stack") -> tuple[int, int]:
     return ok, GRID * GRID
 
 
+def _haze_at_least_as_good(scores: dict, method: str) -> int:
+    """Regions where ``method`` is at least as good as focus-stack on haze."""
+    if method not in scores or "focus-stack" not in scores:
+        return 0
+    return sum(
+        at_least_as_good("haze", scores[method]["haze"][r], scores["focus-stack"]["haze"][r])
+        is not False
+        for r in range(GRID * GRID)
+    )
+
+
 def report(results: dict, args) -> str:
     lines = [
         "# Real stacks, region by region (issue 13)",
@@ -343,8 +361,9 @@ def report(results: dict, args) -> str:
         "(ties within " + ", ".join(f"{m} {a:g}/{r:.0%}" for m, (a, r) in TIES.items()) + ").",
         "",
         "| stack | blur span px | regions flexdof >= focus-stack on all 4 | "
-        "... >= enfuse | sharpness wins/ties/losses | halo | haze | noise |",
-        "|---|---|---|---|---|---|---|---|",
+        "... >= enfuse | sharpness wins/ties/losses | halo | haze | noise | "
+        "frame composite: haze >= focus-stack |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for name, res in results.items():
         s = res["scores"]
@@ -359,8 +378,11 @@ def report(results: dict, args) -> str:
         a, n = good_regions(s)
         e, ne = good_regions(s, "enfuse")
         span = res["blur_span_px"]
+        ceiling = _haze_at_least_as_good(s, "frame composite")
         lines.append(
-            f"| {name} | {span:.1f} | **{a}/{n}** | {e}/{ne} | " + " | ".join(counts) + " |"
+            f"| {name} | {span:.1f} | **{a}/{n}** | {e}/{ne} | "
+            + " | ".join(counts)
+            + f" | {ceiling}/{n} |"
         )
     for name, res in results.items():
         s = res["scores"]
@@ -374,7 +396,11 @@ def report(results: dict, args) -> str:
             f"`{name}_regions.png`.",
             "",
         ]
-        methods = [m for m in ("flexdof", "focus-stack", "enfuse", "sharpest frame") if m in s]
+        methods = [
+            m
+            for m in ("flexdof", "focus-stack", "enfuse", "sharpest frame", "frame composite")
+            if m in s
+        ]
         for m in MEASURES:
             lines += [
                 f"**{m}** ({UNITS[m]})",

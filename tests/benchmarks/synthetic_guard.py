@@ -13,6 +13,9 @@ Scenes:
   the blur span is fitted (and, with the guard, doubled);
 * ``3 planes, far plane beyond the frames``: sigma 0.01, frames focused from 450 to 1200 mm
   only, so the 1600 mm plane is in focus in none (Sec. 4.1; ``pipeline.jobs.ends``);
+* ``3 planes, end frames on the near and far planes``: sigma 0.01, frames focused from 500
+  to 1600 mm, so the end frames' content lies at their own depths (Sec. 4.1's end effect),
+  next to an occlusion edge;
 * ``depth edge``: two 1/f textures at 500 mm (left, in front) and 1500 mm, ray traced
   with occlusion and the lens's breathing (``tests/reference/raytrace.py``, independent of
   pipeline.simulate), 9 frames focused from 400 to 2500 mm, sigma 0 and 0.01; PSNR also
@@ -121,9 +124,12 @@ def evaluate(name, folder: Path, truth, frames, regions) -> list[str]:
     return rows
 
 
-def planes(folder: Path, noise: float, lens: bool, far_mm: float = 2500.0):
+def planes(
+    folder: Path, noise: float, lens: bool, far_mm: float = 2500.0, near_mm: float = 450.0
+):
     sharp = srgb_to_linear(data.astronaut()[40:296, 130:386].astype(np.float32) / 255)
-    make_stack(folder, sharp, [500.0, 800.0, 1600.0], positions_for(450, far_mm, 9), noise=noise)
+    positions = positions_for(near_mm, far_mm, 9)
+    make_stack(folder, sharp, [500.0, 800.0, 1600.0], positions, noise=noise)
     if not lens:
         toml = folder / "stack.toml"
         toml.write_text("\n".join(line for line in toml.read_text().splitlines()
@@ -168,6 +174,11 @@ def main() -> None:
         truth, frames = planes(folder, 0.01, lens=True, far_mm=1200.0)
         lines += evaluate("3 planes, sigma 0.01, far plane beyond the frames", folder, truth,
                           frames, None)
+        folder = Path(tmp) / "ends"
+        folder.mkdir()
+        truth, frames = planes(folder, 0.01, lens=True, far_mm=1600.0, near_mm=500.0)
+        lines += evaluate("3 planes, sigma 0.01, end frames on the near and far planes", folder,
+                          truth, frames, None)
         for noise in (0.0, 0.01):
             folder = Path(tmp) / f"edge{noise}"
             folder.mkdir()
