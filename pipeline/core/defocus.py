@@ -188,16 +188,11 @@ class EndDepth:
     pixels : int
         Pixels (at the fit's resolution) where the frame is the sharpest and textured,
         away from other depths (those the fit used).
-    away : ndarray of bool
-        Pixels (at the fit's resolution) out of reach of content sharpest two or more
-        frames from the end (:func:`_near_other_depths`): where the end's content can be
-        restored with its own kernel without touching other depths.
     """
 
     frame: int
     beyond: float
     pixels: int
-    away: np.ndarray = dataclasses.field(compare=False, repr=False)
 
 
 def _near_other_depths(sharpest, textured, x, end, others, span_px: float) -> np.ndarray:
@@ -252,8 +247,7 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0, map
     than the stack's, whose kernel leaves it soft (issue 13: pcb7's far barcode).
     Pixels within reach of content sharpest two or more frames away are left out
     (:func:`_near_other_depths`): at an occlusion edge the fit reads 0.06-0.2 of the
-    range beyond where the truth is 0 (``tests/test_end_depths.py``); the rest of the
-    frame is returned with each end (``EndDepth.away``).
+    range beyond where the truth is 0 (``tests/test_end_depths.py``).
 
     Parameters
     ----------
@@ -312,5 +306,5 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0, map
                 d *= downscale
                 beyond.append((d * d / (span_px * span_px) - dx * dx) / (2 * dx))
         value = float(np.clip(np.median(beyond), 0.0, 0.5)) if beyond else 0.0
-        ends.append(EndDepth(int(end), value, int(mask.sum()), away))
+        ends.append(EndDepth(int(end), value, int(mask.sum())))
     return ends, sharpest

@@ -76,14 +76,8 @@ def end_kernels(fit, positions, weights, span_px, *, lens, absolute) -> list[End
     out = []
     width = float(np.ptp(positions))
     for end in ends:
-        # where the end frame is the sharpest, and out of reach of other depths: near an
-        # occlusion edge the end's kernel restores one side and rings into the other (on a
-        # stack whose end frames lie on two planes, 16 px strips at the edges lost 2.9 dB)
         mask = (sharpest == end.frame).astype(np.float32)
-        away = end.away.astype(np.float32)
-        weight = cv2.GaussianBlur(mask, (0, 0), BLEND_PREVIEW_PX) * cv2.GaussianBlur(
-            away, (0, 0), BLEND_PREVIEW_PX
-        )
+        weight = cv2.GaussianBlur(mask, (0, 0), BLEND_PREVIEW_PX)
         if np.mean(weight > 0.5) < MIN_FRACTION:
             log.debug("frame %d: content beyond the range covers too little", end.frame)
             continue
