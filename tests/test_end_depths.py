@@ -162,7 +162,7 @@ def test_the_main_job_restores_a_plane_at_the_near_end_frame(tmp_path, sharp, al
     default, plain = run("d.tif"), run("p.tif", frame_range=False)
     near = slice(8, 256 // 3 - 8)  # the 500 mm band, away from the planes' borders
     gain = psnr(default.image[:, near], sharp[:, near]) - psnr(plain.image[:, near], sharp[:, near])
-    assert gain > 3.0  # measured: 28.07 -> 33.42 dB (28.12 correcting only beyond the ends)
+    assert gain > 3.0  # measured: 28.07 -> 33.36 dB (28.12 correcting only beyond the ends)
     ends = {e["frame"]: e for e in default.sidecar["frame_range"]["beyond_ends"]}
     assert ends["frame_08.tif"]["beyond_range"] < 0.05  # at the end frame, not beyond it
 
