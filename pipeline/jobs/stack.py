@@ -63,6 +63,10 @@ PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
 # invents a breathing of up to 1.9% on stacks without any); judged at this resolution
 CHOICE_SIDE_PX = 128
 CHOICE_MARGIN = 0.1  # the estimate must leave under (1 - this) of the identity's unexplained
+# ... with the lens's exact model; with the fitted pillbox, which explains real frames only
+# roughly (beetle, amber: 10-22% of the detail unexplained either way), the identity must
+# explain at least as well: there a real breathing of 1-2% moved the share by only 4-7%
+CHOICE_MARGIN_FITTED = 0.0
 # The blur-span fit matches a pillbox core to the frames; real lenses' defocus also has
 # a wide soft tail, which a kernel of the fitted span leaves as haze (issue 13: pcb7's
 # far barcode kept 45 of its frame's 68 contrast). Twice the fit restored it on pcb7,
@@ -612,7 +616,8 @@ def _aligned_small(previews, homographies, shape) -> tuple[np.ndarray, float]:
 
 def _keep_if_explained(alignments, previews, positions, lens, shape, absolute=True):
     """The estimated ``alignments``, or the identity where the blur model explains the
-    unaligned frames about as well (``CHOICE_MARGIN``): ECC's correlation peak moves with the
+    unaligned frames about as well (``CHOICE_MARGIN``, ``CHOICE_MARGIN_FITTED`` without the
+    lens's model): ECC's correlation peak moves with the
     blur differences between frames, the model predicts them (issue 13;
     ``tests/benchmarks/results/align/align_bias_planes.md``).
 
@@ -639,7 +644,8 @@ def _keep_if_explained(alignments, previews, positions, lens, shape, absolute=Tr
     estimated, identity = multiframe.unexplained_shares(
         [moved, still], kernels_at, np.unique(positions)
     )
-    if estimated < (1.0 - CHOICE_MARGIN) * identity:
+    margin = CHOICE_MARGIN if with_lens else CHOICE_MARGIN_FITTED
+    if estimated < (1.0 - margin) * identity:
         return alignments
     log.info(
         "alignment: the frames unaligned are explained as well (%.4g against %.4g): identity",
