@@ -220,3 +220,19 @@ def test_end_depths_are_not_read_off_occlusion_edges(tmp_path, crop, limit):
     ends, _ = defocus.end_depths(frames, positions, span)
     assert all(end.pixels > defocus.MIN_MASK_PX for end in ends)
     assert max(end.beyond for end in ends) < limit
+
+
+def test_the_streamed_ends_keep_only_the_frames_the_fit_reads(tmp_path, sharp):
+    """``--align none``: the ends' previews are read one at a time and only the four frames
+    at each end are kept (a 12-frame stack: 8), with the map of the sharpest frame over all."""
+    from pipeline.jobs import stack as job
+
+    make_stack(tmp_path, sharp, list(PLANES_MM), positions_for(450, 2500, 12))
+    options = StackOptions(align="none")
+    stack, lens, start = job.load(tmp_path, options)
+    aligned = job.align_stack(stack, lens, options, start)
+    kept, factor, maps = job._streamed_end_previews(aligned)
+    assert sorted(kept) == [0, 1, 2, 3, 8, 9, 10, 11]
+    assert factor == 1.0 and kept[0].shape == (256, 256)  # frames under the fit's 320 px
+    assert set(np.unique(maps.sharpest)) <= set(range(12))
+    assert len(set(np.unique(maps.sharpest))) >= 3  # the three planes' frames
