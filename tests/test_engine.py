@@ -1,5 +1,6 @@
 """The main job (Sec. 9) end to end on synthetic stacks rendered independently of the engine."""
 
+import logging
 import tracemalloc
 from pathlib import Path
 
@@ -344,3 +345,24 @@ def test_lens_option_path_is_relative_to_the_working_directory(good_stack, tmp_p
     monkeypatch.chdir(tmp_path / "work")
     assert main(["-q", "stack", str(good_stack), "-o", "out.tif", "--lens", "mine.toml"]) == 0
     assert (tmp_path / "work" / "out.tif").is_file()
+
+
+def test_float_frames_in_other_units_are_warned_about(tmp_path, sharp, caplog):
+    """Clipping and the frames' range assume white at 1: float frames far above it are not
+    refused (they are linear light) but the user is told to scale them."""
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    make_stack(folder, sharp[:96, :96], [800.0], positions_for(450, 2500, 3))
+    run = lambda name: process_stack(  # noqa: E731
+        folder, tmp_path / name, StackOptions(encoding="float32", blur_span_px=6.0)
+    )
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        run("unit.tif")
+    assert not [r for r in caplog.records if "white is 1" in r.getMessage()]
+    for path in sorted(folder.glob("frame_*.tif")):
+        write_image(path, read_frame(path) * 1000.0, encoding="float32")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        run("scaled.tif")
+    (record,) = [r for r in caplog.records if "white is 1" in r.getMessage()]
+    assert "scale the frames to [0, 1]" in record.getMessage()
