@@ -102,3 +102,24 @@ def test_a_real_breathing_stack_given_focus_steps_keeps_the_estimate(tmp_path, s
     kinds = {f["alignment"] for f in result.sidecar["frames"]}
     assert not any(k.startswith("identity") for k in kinds), kinds
     assert result.sidecar["positions_source"] == "stack.toml"
+
+
+def test_without_a_lens_a_given_blur_span_is_used_and_an_unfittable_one_keeps_the_estimate(
+    tmp_path, sharp, monkeypatch
+):
+    from pipeline.jobs import stack as job
+
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    make_stack(folder, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 9), noise=0.01)
+    _without_lens(folder)
+    fitted = []
+    monkeypatch.setattr(job, "_choice_span", lambda *a: fitted.append(a) or None)
+    with scheduler_context(threads=2):
+        given = process_stack(
+            folder, tmp_path / "given.tif", StackOptions(encoding="float32", blur_span_px=48.0)
+        )
+        unfitted = process_stack(folder, tmp_path / "nofit.tif", StackOptions(encoding="float32"))
+    assert len(fitted) == 1  # only the run without --blur-span-px fits one
+    assert all(f["alignment"].startswith("identity") for f in given.sidecar["frames"])
+    assert not any(f["alignment"].startswith("identity") for f in unfitted.sidecar["frames"])

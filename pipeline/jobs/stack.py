@@ -602,19 +602,22 @@ def _align(stack, options, positions, absolute, previews, shape, lens=None):
         h = align.rescale_homography(a.homography, previews[0].shape, shape[:2])
         alignments.append(dataclasses.replace(a, homography=h))
     if positions is not None and n >= 3 and np.ptp(positions) > 0:
-        return _keep_if_explained(alignments, previews, positions, lens, shape, absolute)
+        return _keep_if_explained(
+            alignments, previews, positions, lens, shape, absolute, options.blur_span_px
+        )
     return alignments
 
 
-def _choice_span(frames, positions, factor: float, shape) -> float:
-    """The blur span (full-resolution px) fitted on the choice's small ``frames``."""
+def _choice_span(frames, positions, factor: float, shape) -> float | None:
+    """The blur span (full-resolution px) fitted on the choice's small ``frames``; ``None``
+    where nothing can be fitted (no textured, in-focus regions)."""
     max_span = min(400.0, float(np.hypot(*shape[:2])))
     try:
         return defocus.estimate_blur_span(
             list(frames), positions, downscale=factor, max_span_px=max_span
         )
-    except InputError:  # nothing textured to fit: the span of the search's middle
-        return float(np.sqrt(2.0 * max_span))
+    except InputError:
+        return None
 
 
 def _aligned_small(previews, homographies, shape) -> tuple[np.ndarray, float]:
@@ -632,7 +635,9 @@ def _aligned_small(previews, homographies, shape) -> tuple[np.ndarray, float]:
     return np.stack(small), factor
 
 
-def _keep_if_explained(alignments, previews, positions, lens, shape, absolute=True):
+def _keep_if_explained(
+    alignments, previews, positions, lens, shape, absolute=True, blur_span_px=None
+):
     """The estimated ``alignments``, or the identity where the blur model explains the
     unaligned frames about as well (``CHOICE_MARGIN``, ``CHOICE_MARGIN_FITTED`` without the
     lens's model): ECC's correlation peak moves with the
@@ -640,13 +645,19 @@ def _keep_if_explained(alignments, previews, positions, lens, shape, absolute=Tr
     ``tests/benchmarks/results/align/align_bias_planes.md``).
 
     The model is the lens's where it is known with absolute focus positions; otherwise the
-    pillbox of :mod:`pipeline.core.defocus`, with the blur span fitted on the frames aligned
-    by the estimate (on a stack without breathing the unaligned frames fit the same span,
-    47.6 against 48.0 px on the three-plane stack; on a breathing one they fit none well)."""
+    pillbox of :mod:`pipeline.core.defocus` with ``blur_span_px`` (``--blur-span-px``) or,
+    without it, the span fitted on the frames aligned by the estimate (on a stack without
+    breathing the unaligned frames fit the same span, 47.6 against 48.0 px on the three-plane
+    stack; on a breathing one they fit none well). Where no span can be fitted the estimate
+    is kept."""
     moved, factor = _aligned_small(previews, [a.homography for a in alignments], shape)
     still, _ = _aligned_small(previews, None, shape)
     with_lens = lens is not None and absolute
-    span = None if with_lens else _choice_span(moved, positions, factor, shape)
+    span = None
+    if not with_lens:
+        span = blur_span_px or _choice_span(moved, positions, factor, shape)
+        if span is None:
+            return alignments
 
     def kernels_at(x: float, scale: float) -> list[np.ndarray]:
         return frame_kernels(
