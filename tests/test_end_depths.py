@@ -236,3 +236,51 @@ def test_the_streamed_ends_keep_only_the_frames_the_fit_reads(tmp_path, sharp):
     assert factor == 1.0 and kept[0].shape == (256, 256)  # frames under the fit's 320 px
     assert set(np.unique(maps.sharpest)) <= set(range(12))
     assert len(set(np.unique(maps.sharpest))) >= 3  # the three planes' frames
+
+
+def test_the_frame_check_keeps_the_correction_only_where_the_end_frame_shows_it():
+    """Left half: the end frame shows what the correction adds (frame = result + delta);
+    right half: it shows the opposite (the correction sharpens what the frame shows
+    blurred). The weight is about 1 on the left and 0 on the right, at full resolution,
+    and an exposure offset between the frame and the result does not change it."""
+    from scipy import ndimage
+
+    from pipeline.jobs import ends
+
+    rng = np.random.default_rng(11)
+    shape = (96, 160)
+    result = ndimage.gaussian_filter(rng.uniform(0, 1, shape), 2.0).astype(np.float32)
+    delta = (ndimage.gaussian_filter(rng.normal(0, 0.05, shape), 1.0)).astype(np.float32)
+    sign = np.where(np.arange(shape[1]) < shape[1] // 2, 1.0, -1.0)[None, :]
+    frame = (result + sign * delta + 0.2).astype(np.float32)  # brighter: another exposure
+    colour = np.repeat(result[..., None], 3, axis=2)  # colour result and correction, grey frame
+    weight = ends._frame_agreement(colour, np.repeat(delta[..., None], 3, axis=2), frame)
+    assert weight.shape == shape and np.all(np.isfinite(weight))
+    left, right = weight[8:-8, 8 : shape[1] // 2 - 8], weight[8:-8, shape[1] // 2 + 8 : -8]
+    assert np.mean(left) > 0.95 and np.mean(right) < 0.05
+    half = ends._frame_agreement(result, delta, result + 0.3 * delta)  # shows a third of it
+    assert 0.45 < np.mean(half[8:-8, 8:-8]) < 0.75  # gain 2 times a slope of 0.3
+    flat = ends._frame_agreement(result, np.zeros_like(delta), frame)  # nothing to check
+    assert np.all(np.isfinite(flat))
+
+
+def test_the_end_correction_does_not_ring_across_occlusion_edges(tmp_path, sharp):
+    """End frames focused on the nearest and farthest planes (500-1600 mm), sigma 0.01:
+    the correction restores the end planes without ringing into their neighbours. Without
+    the end frame's check (:func:`pipeline.jobs.ends._frame_agreement`) the whole stack was
+    0.6 dB below the job without the frames' range (27.43 against 28.02 dB) and the 16 px
+    strips along the planes' borders 2.7 dB below (22.40 against 25.11 dB); with it, 29.86
+    and 25.69 dB."""
+    make_stack(tmp_path, sharp, list(PLANES_MM), positions_for(500, 1600, 9), noise=0.01)
+
+    def run(name, **options):
+        return process_stack(
+            tmp_path, tmp_path / name, StackOptions(encoding="float32", **options)
+        ).image
+
+    default, plain = run("d.tif"), run("p.tif", frame_range=False)
+    strips = np.zeros(sharp.shape[:2], bool)
+    for border in (256 // 3, 2 * 256 // 3):
+        strips[:, border - 16 : border + 16] = True
+    assert psnr(default, sharp) > psnr(plain, sharp) + 1.0
+    assert psnr(default[strips], sharp[strips]) > psnr(plain[strips], sharp[strips]) - 0.5

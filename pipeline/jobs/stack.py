@@ -41,7 +41,7 @@ from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
-from pipeline.jobs.ends import end_kernels, restore_ends
+from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
 from pipeline.jobs.multiframe import restore_multiframe
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import (
@@ -58,10 +58,10 @@ from pipeline.parallel.scheduler import _TaskProgress, local_workers
 log = logging.getLogger(__name__)
 
 PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
+OTHER_UNITS_ABOVE = 1.5  # an average this far above white (1): frames in other units
 # The estimated alignment is kept only if the blur model explains the aligned frames clearly
 # better than unaligned ones (issue 13: ECC, biased by the frames' depth-dependent blur,
 # invents a breathing of up to 1.9% on stacks without any); judged at this resolution
-OTHER_UNITS_ABOVE = 1.5  # an average this far above white (1): frames in other units
 CHOICE_SIDE_PX = 128
 CHOICE_MARGIN = 0.1  # the estimate must leave under (1 - this) of the identity's unexplained
 # ... with the lens's exact model; with the fitted pillbox, which explains real frames only
@@ -186,6 +186,12 @@ def _fit_preview(preview, alignment, full_shape) -> np.ndarray:
     """A preview at the defocus-fit resolution, aligned by its full-resolution homography."""
     factor = _fit_factor(full_shape)
     size = (max(1, round(full_shape[1] / factor)), max(1, round(full_shape[0] / factor)))
+    return _aligned_at(preview, alignment, full_shape, size)
+
+
+def _aligned_at(preview, alignment, full_shape, size) -> np.ndarray:
+    """``preview`` reduced to ``size`` (cols, rows) and aligned by its full-resolution
+    homography."""
     reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
     h = align.rescale_homography(alignment.homography, full_shape[:2], reduced.shape)
     return align.warp(reduced, h, reduced.shape)
@@ -195,6 +201,14 @@ def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarra
     """Aligned copies at the defocus-fit resolution, and their downscale factor."""
     small = [_fit_preview(p, a, full_shape) for p, a in zip(previews, alignments)]
     return small, _fit_factor(full_shape)
+
+
+def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
+    """Frame ``index``, grey and aligned, at the end correction's resolution
+    (:func:`pipeline.jobs.ends.correction_factor`; a cheap reduced decode for JPEGs)."""
+    size = reduced_size(aligned.shape, correction_factor(aligned.shape))
+    preview = read_preview(aligned.stack.files[index], max(size))
+    return _aligned_at(preview, aligned.alignments[index], aligned.shape, size)
 
 
 def _streamed_end_previews(aligned: AlignedStack):
@@ -568,6 +582,7 @@ def _stack_ipsf(
             summary["blur_span_px"],
             lens=aligned.lens,
             absolute=aligned.absolute,
+            read_end=lambda i: _end_frame(aligned, i),
         )
     aligned.timings["kernel"] = time.perf_counter() - t0
     return kernel, samples, summary, beyond
