@@ -105,8 +105,13 @@ def test_the_end_correction_is_the_difference_of_two_wiener_filters():
     rng = np.random.default_rng(5)
     image = ndimage.gaussian_filter(rng.uniform(0, 1, (256, 320)), 1.5).astype(np.float32)
     narrow, wide = raster_pillbox(5.0, 4), raster_pillbox(17.0, 10)
-    assert not np.any(ends._correction(image, narrow, narrow, 1))  # the same kernel: nothing
-    full = ends._correction(image, wide, narrow, 1)
+
+    def correction(end_kernel, stack_kernel, factor):  # upsampled as restore_ends does
+        small = ends._reduced_correction(image, end_kernel, stack_kernel, factor)[..., 0]
+        return cv2.resize(small, image.shape[::-1], interpolation=cv2.INTER_CUBIC)
+
+    assert not np.any(correction(narrow, narrow, 1))  # the same kernel: nothing
+    full = correction(wide, narrow, 1)
     # by hand: each Wiener filter on the reflect-padded image, one spectrum at a time
     pad = 21
     padded = np.pad(image.astype(np.float64), pad, mode="reflect")
@@ -127,7 +132,7 @@ def test_the_end_correction_is_the_difference_of_two_wiener_filters():
 
     np.testing.assert_allclose(full, wiener(wide) - wiener(narrow), atol=1e-5)
     for factor in (2, 4):  # reduced: the same in the low band
-        reduced = ends._correction(image, wide, narrow, factor)
+        reduced = correction(wide, narrow, factor)
         low = [ndimage.gaussian_filter(x, 8.0)[32:-32, 32:-32] for x in (full, reduced)]
         assert np.corrcoef(low[0].ravel(), low[1].ravel())[0, 1] > 0.85
         assert 0.7 < np.std(low[1]) / np.std(low[0]) < 1.4

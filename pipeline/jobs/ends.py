@@ -12,8 +12,8 @@ end frame is the sharpest, with its content at ``beyond`` of the range past it
 average is deconvolved again with the kernel of that depth
 (:func:`pipeline.core.stack_kernel.depth_kernel`) and the difference to the stack
 kernel's result is added where that end frame is the sharpest (the map of the aligned
-previews, smoothed), at a reduced resolution (:func:`_correction`), and where the end
-frame itself shows what it adds (:func:`_frame_agreement`).
+previews, smoothed), at a reduced resolution (:func:`_reduced_correction`), and where
+the end frame itself shows what it adds (:func:`_frame_agreement`).
 
 Measured (``tests/test_end_depths.py``, ``tests/benchmarks/synthetic_guard.py``): a
 three-plane stack whose far plane lies beyond the frames' range goes from 25.98 to
@@ -118,9 +118,10 @@ def _reduced_kernel(kernel: np.ndarray, factor: int) -> np.ndarray:
     return small.astype(np.float64) / float(small.sum())
 
 
-def _correction(average, end_kernel, stack_kernel, factor: int) -> np.ndarray:
-    """``F^-1[(W_end - W_stack) Y]`` at ``1 / factor`` of the resolution, upsampled: what
-    deconvolving with the end depth's kernel adds to deconvolving with the stack's.
+def _reduced_correction(average, end_kernel, stack_kernel, factor: int) -> np.ndarray:
+    """``F^-1[(W_end - W_stack) Y]`` at ``1 / factor`` of the resolution (float32, with a
+    channel axis): what deconvolving with the end depth's kernel adds to deconvolving with
+    the stack's.
 
     ``W = conj(K) / (|K|^2 + lam |D|^2)``, ``D`` the discrete gradient, ``lam =
     CORRECTION_LAM / factor^2`` (the same prior per unit of the full image's frequency).
@@ -131,7 +132,6 @@ def _correction(average, end_kernel, stack_kernel, factor: int) -> np.ndarray:
     ``factor^2`` pixels lowers the noise ``factor`` times (a full-resolution correction won
     one region fewer on the real stacks, losing flat-area noise, for 2-4x the time).
     """
-    rows, cols = average.shape[:2]
     small = cv2.resize(
         average, reduced_size(average.shape, factor), interpolation=cv2.INTER_AREA
     ).astype(np.float64)
@@ -148,20 +148,19 @@ def _correction(average, end_kernel, stack_kernel, factor: int) -> np.ndarray:
     for k, sign in ((ke, 1.0), (k0, -1.0)):
         spectrum = spectra.centred_fft(k, grid, real=True)
         transfer = transfer + sign * np.conj(spectrum) / (np.abs(spectrum) ** 2 + lam * gradient)
-    delta = np.stack(
+    return np.stack(
         [
             sfft.irfft2(sfft.rfft2(padded[..., c]) * transfer, s=grid)[pad:-pad, pad:-pad]
             for c in range(padded.shape[2])
         ],
         axis=2,
     ).astype(np.float32)
-    delta = cv2.resize(delta, (cols, rows), interpolation=cv2.INTER_CUBIC)
-    return delta.reshape(average.shape)
 
 
 def _frame_agreement(result, delta, frame_image) -> np.ndarray:
-    """How much of the correction ``delta`` the end frame supports, per pixel (0..1, at
-    ``result``'s resolution), checked at the correction's resolution (``frame_image``'s).
+    """How much of the correction ``delta`` (:func:`_reduced_correction`) the end frame
+    supports, per pixel (0..1, at ``result``'s resolution), checked at the correction's
+    resolution (``delta``'s and ``frame_image``'s).
 
     Where the end frame is the sharpest, it shows its content with the detail the stack's
     IPSF left out, so ``result + delta`` should move towards it: locally (a Gaussian window
@@ -178,9 +177,8 @@ def _frame_agreement(result, delta, frame_image) -> np.ndarray:
     27.43 -> 29.86 dB; the far plane beyond the frames 27.64 -> 27.62 dB.
     """
     rows, cols = result.shape[:2]
-    size = frame_image.shape[::-1]
-    grey = [x.mean(axis=2) if x.ndim == 3 else x for x in (result, delta)]
-    r, d = (cv2.resize(np.asarray(x, np.float32), size, interpolation=cv2.INTER_AREA) for x in grey)
+    small = cv2.resize(result, frame_image.shape[::-1], interpolation=cv2.INTER_AREA)
+    r, d = (x.mean(axis=2) if x.ndim == 3 else x for x in (small, delta))
     e = frame_image - r
 
     def local(x):
@@ -197,7 +195,7 @@ def _frame_agreement(result, delta, frame_image) -> np.ndarray:
 def restore_ends(result, average, ends: list[EndKernel], stack_kernel) -> list[dict]:
     """Add to ``result`` (in place), where each end frame is the sharpest and supports it
     (:func:`_frame_agreement`), what deconvolving ``average`` with that end depth's
-    kernel adds to deconvolving it with ``stack_kernel`` (:func:`_correction`, at a
+    kernel adds to deconvolving it with ``stack_kernel`` (:func:`_reduced_correction`, at a
     reduced resolution for frames of ``CORRECTION_SIDE_PX`` and more). Returns, per end,
     what the sidecar records."""
     shape = result.shape[:2]
@@ -205,8 +203,10 @@ def restore_ends(result, average, ends: list[EndKernel], stack_kernel) -> list[d
     report = []
     for end in ends:
         weight = cv2.resize(end.weight, shape[::-1], interpolation=cv2.INTER_LINEAR)
-        delta = _correction(average, end.kernel, stack_kernel, factor)
-        blend = weight * _frame_agreement(result, delta, end.frame_image)
+        small = _reduced_correction(average, end.kernel, stack_kernel, factor)
+        blend = weight * _frame_agreement(result, small, end.frame_image)
+        delta = cv2.resize(small, shape[::-1], interpolation=cv2.INTER_CUBIC)
+        delta = delta.reshape(result.shape)
         rows = np.flatnonzero(blend.max(axis=1) >= BLEND_FLOOR)  # the rows it changes
         if rows.size:
             box = slice(int(rows[0]), int(rows[-1]) + 1)
