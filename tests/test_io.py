@@ -455,3 +455,26 @@ def test_no_stray_files_in_cwd(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     write_image("rel.png", np.zeros((2, 2), np.float32))
     assert sorted(os.listdir(tmp_path)) == ["rel.png"]
+
+
+def test_a_white_level_divides_float_tiffs_and_is_refused_for_codes(tmp_path):
+    """``white``: float TIFF samples in other units, divided by it; integer codes (whose
+    white is their largest code) and RAW files refuse it, naming the file."""
+    image = np.array([[0.0, 1000.0, 4095.0, 8190.0]], dtype=np.float32)
+    write_image(tmp_path / "counts.tif", image, encoding="float32")
+    back = read_frame(tmp_path / "counts.tif", white=4095.0)
+    np.testing.assert_allclose(back, [[0.0, 1000 / 4095, 1.0, 2.0]], rtol=1e-6)
+    assert read_frame(tmp_path / "counts.tif")[0, 2] == 4095.0  # without it: as written
+    from pipeline.io.read import read_preview
+
+    np.testing.assert_allclose(read_preview(tmp_path / "counts.tif", 4, white=4095.0), back)
+    write_image(tmp_path / "codes.tif", back / 2, encoding="srgb16")
+    write_image(tmp_path / "codes.png", back / 2)
+    for name, what in (("codes.tif", "16-bit codes"), ("codes.png", "PNG file")):
+        with pytest.raises(InputError, match=rf"{name}: a white level .* {what}"):
+            read_frame(tmp_path / name, white=2.0)
+    with pytest.raises(InputError, match="PNG file"):
+        read_preview(tmp_path / "codes.png", 2, white=2.0)
+    for bad in (0.0, -1.0, math.inf, math.nan):
+        with pytest.raises(InputError, match="white must be a finite number > 0"):
+            read_frame(tmp_path / "counts.tif", white=bad)

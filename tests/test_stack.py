@@ -339,3 +339,19 @@ def test_frames_with_a_truncated_file(tmp_path, shared_data):
     (tmp_path / "pcb_002.jpg").write_bytes(data[: len(data) // 2])
     with pytest.raises(InputError, match=r"pcb_002\.jpg: truncated JPEG"):
         check_frames(load_stack(tmp_path))
+
+
+@pytest.mark.parametrize(
+    ("value", "match"),
+    [("4095", None), ("0", "white must be > 0"), ('"4095"', "white must be a number"),
+     ("nan", "white must be a finite number")],
+)
+def test_white_in_stack_toml(tmp_path, value, match):
+    make_frames(tmp_path, ["a.png", "b.png"])
+    frames = '[[frames]]\nfile = "a.png"\n[[frames]]\nfile = "b.png"\n'
+    write_toml(tmp_path, f"white = {value}\n" + frames)
+    if match is None:
+        assert load_stack(tmp_path).white == 4095.0
+    else:
+        with pytest.raises(InputError, match=rf"stack.toml: {match}"):
+            load_stack(tmp_path)

@@ -264,6 +264,9 @@ def test_plan_order_options_and_defaults(tmp_path):
     guarded = _flow(root, inputs_extra="options = { frame_guard = true, frame_range = false }\n")
     options = wplan.plan_stacks(load_workflow(guarded))[0].options
     assert (options.frame_guard, options.frame_range) == (True, False)  # were ignored
+    assert first.options.white is None
+    white = _flow(root, inputs_extra="options = { white = 4095 }\n")
+    assert wplan.plan_stacks(load_workflow(white))[0].options.white == 4095.0
 
 
 def test_fingerprint_follows_contents_options_and_name_not_location(tmp_path):

@@ -243,6 +243,13 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         "(default: from the lens profile, else measured from the frames)",
     )
     parser.add_argument(
+        "--white",
+        type=float,
+        metavar="LEVEL",
+        help="the value of white in float TIFF frames in other units (e.g. 4095 for a "
+        "12-bit sensor's counts; default: white in stack.toml, else 1)",
+    )
+    parser.add_argument(
         "--frame-guard",
         dest="frame_guard",
         action="store_const",
@@ -290,4 +297,5 @@ def stack_options(args: argparse.Namespace):
         max_pixels=given("max_pixels"),
         frame_guard=given("frame_guard"),
         frame_range=given("frame_range"),
+        white=getattr(args, "white", None),
     )

@@ -76,6 +76,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         "method": args.method,
         "align": args.align,
         "blur_span_px": args.blur_span_px,
+        "white": args.white,
         "tile_px": args.tile_px,
         "frame_guard": args.frame_guard,
         "frame_range": args.frame_range,

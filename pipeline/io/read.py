@@ -81,7 +81,9 @@ def _decode_codes(codes: np.ndarray, transfer: str, path: Path) -> np.ndarray:
     )
 
 
-def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
+def read_frame(
+    path: str | Path, *, transfer: str | None = None, white: float | None = None
+) -> np.ndarray:
     """Read one image as float32 linear light.
 
     Parameters
@@ -92,6 +94,11 @@ def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
     transfer : {"srgb", "linear"}, optional
         Override the transfer function of integer TIFF/PNG/JPEG code values
         (default: sRGB, or what a flexdof TIFF says). Ignored for RAW.
+    white : float, optional
+        The value of white in a float TIFF (default 1): its samples are divided by it,
+        so frames in other units (counts of a 12-bit sensor, 0-65535) come out with
+        white at 1 like every other format. Only float TIFFs take it: the white of
+        integer codes is their largest code and RAW files carry their own.
 
     Returns
     -------
@@ -107,11 +114,15 @@ def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
     p = _existing(path)
     if transfer not in (None, "srgb", "linear"):
         raise InputError(f"transfer must be 'srgb', 'linear' or None, got {transfer!r}")
+    if white is not None and not (np.isfinite(white) and white > 0):
+        raise InputError(f"white must be a finite number > 0, got {white!r}")
     kind = _kind(p)
+    if white is not None and kind != "tiff":
+        raise InputError(_white_for_codes(p, f"{kind.upper()} file"))
     if kind == "raw":
         return _read_raw(p)
     if kind == "tiff":
-        image = _read_tiff(p, transfer)
+        image = _read_tiff(p, transfer, white)
         bad = int(np.count_nonzero(~np.isfinite(image)))
         if bad:  # float TIFFs can hold NaN/inf; nothing downstream can use them
             raise InputError(f"{p}: {bad} pixel values are NaN or infinite; fix or drop this frame")
@@ -119,12 +130,21 @@ def read_frame(path: str | Path, *, transfer: str | None = None) -> np.ndarray:
     return _read_codec(p, kind, transfer or "srgb")
 
 
-def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
+def _white_for_codes(path: Path, what: str) -> str:
+    return (
+        f"{path}: a white level (--white, or white in stack.toml) applies to float TIFF "
+        f"frames only, and this is a {what}, whose white is its largest code (RAW: its "
+        "own white level); drop the white level for these frames"
+    )
+
+
+def read_preview(path: str | Path, max_side_px: int, *, white: float | None = None) -> np.ndarray:
     """A reduced grey copy (float32 linear light, longest side ``max_side_px``) of a frame.
 
     JPEGs are decoded at 1/2, 1/4 or 1/8 scale in the DCT domain (much cheaper than
     a full decode); other formats are decoded fully and reduced with area
-    averaging. The geometry is that of ``cv2.resize`` of the full frame.
+    averaging. The geometry is that of ``cv2.resize`` of the full frame. ``white``: as
+    for :func:`read_frame`.
     """
     p = _existing(path)
     if max_side_px < 1:
@@ -132,7 +152,7 @@ def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
     info = frame_info(p)
     full_side = max(info.rows, info.cols)
     image = None
-    if _kind(p) == "jpeg" and full_side > max_side_px:
+    if _kind(p) == "jpeg" and full_side > max_side_px and white is None:
         factor = max((r for r in (1, 2, 4, 8) if full_side / r >= max_side_px), default=1)
         flags = {
             1: cv2.IMREAD_COLOR,
@@ -147,7 +167,7 @@ def read_preview(path: str | Path, max_side_px: int) -> np.ndarray:
             raise InputError(f"{p}: OpenCV cannot decode it (corrupt JPEG data)")
         image = _decode_codes(_to_rgb(decoded, p, bgr=True), "srgb", p)
     if image is None:
-        image = read_frame(p)
+        image = read_frame(p, white=white)
     if image.ndim == 3:  # (r + g) + b, then / 3: numpy's float32 mean, without its copies
         grey = np.add(image[..., 0], image[..., 1], dtype=np.float32)
         grey += image[..., 2]
@@ -306,7 +326,7 @@ def _to_rgb(image: np.ndarray, path: Path, *, bgr: bool) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
-def _read_tiff(path: Path, transfer: str | None) -> np.ndarray:
+def _read_tiff(path: Path, transfer: str | None, white: float | None = None) -> np.ndarray:
     try:
         with tifffile.TiffFile(path) as tif:
             page = tif.pages.first
@@ -318,7 +338,12 @@ def _read_tiff(path: Path, transfer: str | None) -> np.ndarray:
         raise InputError(f"{path}: cannot read TIFF ({type(err).__name__}: {err})") from err
     if axes == "SYX":
         data = np.moveaxis(data, 0, -1)
-    return _decode_codes(_to_rgb(data, path, bgr=False), mode, path)
+    image = _decode_codes(_to_rgb(data, path, bgr=False), mode, path)
+    if white is not None:
+        if data.dtype.kind != "f":
+            raise InputError(_white_for_codes(path, f"TIFF of {data.dtype.itemsize * 8}-bit codes"))
+        image /= np.float32(white)
+    return image
 
 
 def _read_codec(path: Path, kind: str, transfer: str) -> np.ndarray:

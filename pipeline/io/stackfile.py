@@ -42,7 +42,7 @@ MAX_IMAGE_DISTANCE_F = 100  # v <= 100 f: magnification 99x, beyond any bellows 
 KINDS = ("focal-stack", "sweep")
 POSITION_KEYS = ("focus_distance_mm", "image_distance_mm", "focus_step")
 SWEEP_PROFILES = ("constant-speed",)
-_TOP_KEYS = ("lens", "kind", "partial", "frames", "sweep")
+_TOP_KEYS = ("lens", "kind", "partial", "white", "frames", "sweep")
 _FRAME_KEYS = ("file", *POSITION_KEYS)
 _SWEEP_PAIRS = (
     ("start_image_distance_mm", "end_image_distance_mm"),
@@ -127,6 +127,9 @@ class Stack:
         True when stack.toml marks an interrupted capture.
     positions_source : {"stack.toml", "exif"}, optional
         Where the frames' focus positions came from; None when unknown.
+    white : float, optional
+        The value of white in the frames, for float TIFF frames in other units than
+        white at 1 (``white`` in stack.toml; see :func:`pipeline.io.read.read_frame`).
     """
 
     frames: tuple[Frame, ...]
@@ -137,6 +140,7 @@ class Stack:
     sweep: Sweep | None = None
     partial: bool = False
     positions_source: str | None = None
+    white: float | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -147,7 +151,7 @@ class Stack:
 
     def read(self, index: int) -> np.ndarray:
         """Decode frame ``index`` (float32 linear light)."""
-        return read_frame(self.frames[index].file)
+        return read_frame(self.frames[index].file, white=self.white)
 
 
 def natural_key(path: str | Path) -> list:
@@ -407,6 +411,9 @@ def _load_sidecar(toml: Path) -> Stack:
         raise InputError(f"{toml}: partial must be true or false, got {partial!r}")
     if partial:
         log.warning("%s: partial = true: this capture was interrupted; frames may be missing", toml)
+    white = data.get("white")
+    if white is not None:
+        white = _positive(toml, "white", white)
     lens_name = data.get("lens")
     lens = None
     if lens_name is not None:
@@ -445,6 +452,7 @@ def _load_sidecar(toml: Path) -> Stack:
         sweep=sweep,
         partial=partial,
         positions_source=positions_source,
+        white=white,
     )
     if lens is not None:
         _check_against_lens(toml, stack, lens)

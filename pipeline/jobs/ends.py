@@ -180,6 +180,10 @@ def _frame_agreement(result, delta, frame_image) -> np.ndarray:
     small = cv2.resize(result, frame_image.shape[::-1], interpolation=cv2.INTER_AREA)
     r, d = (x.mean(axis=2) if x.ndim == 3 else x for x in (small, delta))
     e = frame_image - r
+    # one common scale: the slope does not change, and products of frames in other units
+    # (1e38: tests/test_ingestion.py) cannot overflow float32
+    scale = max(float(np.max(np.abs(d))), float(np.max(np.abs(e))), 1e-30)
+    d, e = d / np.float32(scale), e / np.float32(scale)
 
     def local(x):
         return cv2.GaussianBlur(x, (0, 0), AGREEMENT_SIGMA_PX)

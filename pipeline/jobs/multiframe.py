@@ -56,7 +56,7 @@ def restore_multiframe(
         )
     frames = np.empty((len(files), *np.shape(fallback)), dtype=np.float32)
     for i, (path, a) in enumerate(zip(files, aligned.alignments)):
-        frame = read_frame(path)
+        frame = read_frame(path, white=aligned.stack.white)
         frames[i] = align.warp(frame, a.homography, aligned.shape, interpolation="lanczos")
         progress("multiframe", i + 1, 2 * len(files))
 

@@ -48,6 +48,8 @@ class StackOptions:
     # every measure; on stacks that follow the model -0.01 to +1.4 dB; 1.04-1.16x the time.
     # False: the paper's linear result as it is
     frame_range: bool = True
+    # the value of white in float TIFF frames (--white; None: stack.toml's white, else 1)
+    white: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:
@@ -56,6 +58,8 @@ class StackOptions:
             raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
         if self.blur_span_px is not None:
             validate.positive("blur_span_px", self.blur_span_px)
+        if self.white is not None:
+            validate.positive("white", self.white)
         validate.whole("max_pixels", self.max_pixels)
         validate.whole("tile_px", self.tile_px)
 

@@ -97,15 +97,17 @@ def check_frame_size(stack: Stack, shape: tuple[int, ...], options: StackOptions
 
 def check_white(stack: Stack, average: np.ndarray) -> None:
     """Warn when the frames' average goes far above white (1): float TIFF frames in other
-    units. Clipping (``>= 0.999``) and the frames' range (16-bit codes of [0, 1]) assume white
-    at 1, so such a stack comes out about 1 dB worse with the range off (frames scaled by 1000:
-    29.61 against 30.60 dB on the three planes)."""
+    units whose white level was not given. Clipping (``>= 0.999``) and the frames' range
+    (16-bit codes of [0, 1]) assume white at 1, so such a stack comes out about 1 dB worse
+    with the range off (frames scaled by 1000: 29.61 against 30.60 dB on the three planes;
+    with ``--white 1000`` as in [0, 1])."""
     peak = float(np.max(average)) if average.size else 0.0
     if peak > OTHER_UNITS_ABOVE:
         log.warning(
             "%s: the frames' average reaches %.4g where white is 1 (float TIFFs are linear "
             "light with white at 1): pixels at or above 1 count as clipped and the frames' "
-            "range is not applied there; scale the frames to [0, 1] first",
+            "range is not applied there; give the frames' white level with --white LEVEL "
+            "(or white = LEVEL in stack.toml)",
             _describe_frames(stack),
             peak,
         )
@@ -162,15 +164,24 @@ def _sidecar_positions(stack: Stack, lens: Lens | None) -> tuple[np.ndarray | No
 
 # ----------------------------------------------------------------------------- previews
 def read_previews(
-    files: Sequence[Path], max_side_px: int, progress: Progress = _no_progress
+    files: Sequence[Path],
+    max_side_px: int,
+    progress: Progress = _no_progress,
+    *,
+    white: float | None = None,
 ) -> list[np.ndarray]:
     """Reduced grey copies of every frame, decoded in parallel (one cheap decode each).
 
-    Float frames far brighter than white (above ``RESCALE_ABOVE``) are divided by their common
-    peak, so alignment statistics cannot overflow float32.
+    ``white``: the frames' white level (:func:`pipeline.io.read.read_frame`). Float frames
+    far brighter than white (above ``RESCALE_ABOVE``) are divided by their common peak, so
+    alignment statistics cannot overflow float32.
     """
     with _TaskProgress("read_preview", lambda done: progress("preview", done, len(files))):
-        previews = list(dask.compute(*[dask.delayed(read_preview)(f, max_side_px) for f in files]))
+        previews = list(
+            dask.compute(
+                *[dask.delayed(read_preview)(f, max_side_px, white=white) for f in files]
+            )
+        )
     peak = max((float(np.max(np.abs(p))) for p in previews if p.size), default=0.0)
     if peak > RESCALE_ABOVE:
         previews = [(p.astype(np.float64) / peak).astype(np.float32) for p in previews]
@@ -207,7 +218,7 @@ def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
     """Frame ``index``, grey and aligned, at the end correction's resolution
     (:func:`pipeline.jobs.ends.correction_factor`; a cheap reduced decode for JPEGs)."""
     size = reduced_size(aligned.shape, correction_factor(aligned.shape))
-    preview = read_preview(aligned.stack.files[index], max(size))
+    preview = read_preview(aligned.stack.files[index], max(size), white=aligned.stack.white)
     return _aligned_at(preview, aligned.alignments[index], aligned.shape, size)
 
 
@@ -221,7 +232,8 @@ def _streamed_end_previews(aligned: AlignedStack):
     keep = set(defocus.end_frames(aligned.positions))
     maps, kept = defocus.FocusMaps(), {}
     for i, (path, alignment) in enumerate(zip(aligned.stack.files, aligned.alignments)):
-        small = _fit_preview(read_preview(path, PREVIEW_SIDE_PX), alignment, aligned.shape)
+        preview = read_preview(path, PREVIEW_SIDE_PX, white=aligned.stack.white)
+        small = _fit_preview(preview, alignment, aligned.shape)
         maps.add(i, small)
         if i in keep:
             kept[i] = small
@@ -250,9 +262,12 @@ class AlignedStack:
 
 
 def load(paths, options: StackOptions) -> tuple[Stack, Lens | None, float]:
-    """The stack at ``paths``, its lens (``--lens`` first, then stack.toml), the start time."""
+    """The stack at ``paths``, its lens (``--lens`` first, then stack.toml), the start time.
+    ``--white`` replaces stack.toml's white level."""
     start = time.perf_counter()
     stack = load_stack(paths)
+    if options.white is not None:
+        stack = dataclasses.replace(stack, white=options.white)
     return stack, _resolve_lens(stack, options), start
 
 
@@ -279,7 +294,9 @@ def align_stack(
     t0 = time.perf_counter()
     previews = None
     if options.align == "estimate" or (fit_blur_span and not (lens is not None and absolute)):
-        previews = read_previews(stack.files, options.align_max_side_px, progress)
+        previews = read_previews(
+            stack.files, options.align_max_side_px, progress, white=stack.white
+        )
     progress("align", 0, 1)
     alignments = _align(stack, options, positions, absolute, previews, shape, lens)
     progress("align", 1, 1)
@@ -324,6 +341,7 @@ def accumulate(
         per_frame,
         aligned.shape,
         support=support,
+        white=aligned.stack.white,
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
@@ -366,6 +384,7 @@ def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, optio
         "positions_source": aligned.positions_source,
         "frames": frames_meta,
         "partial_stack": aligned.stack.partial,
+        "white": aligned.stack.white,
     }
 
 

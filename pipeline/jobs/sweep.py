@@ -9,6 +9,7 @@ frame uses the same kernel and frames are deconvolved in parallel.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -107,6 +108,7 @@ def process_sweep_stack(
     if lens is None:
         raise InputError(f"{stack.base_dir}: a sweep capture needs a lens (stack.toml or --lens)")
     profile = sweep_profile(stack, lens)
+    options = dataclasses.replace(options, white=stack.white)  # with --white's, by load()
     return process_sweep_image(stack.sweep.file, lens, profile, output, options, progress=progress)
 
 
@@ -130,7 +132,7 @@ def process_sweep_image(
     timings = {"kernel": time.perf_counter() - start}
     progress("kernel", 1, 1)
     t0 = time.perf_counter()
-    image = read_frame(path)
+    image = read_frame(path, white=options.white)
     timings["read"] = time.perf_counter() - t0
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
@@ -144,6 +146,7 @@ def process_sweep_image(
         "method": options.method,
         "sweep": {"image_distance_mm": list(profile.range_mm), "exposure_s": profile.exposure_s},
         "kernel": summary,
+        "white": options.white,
     }
     return write_result(output, result, kernel, sidecar, timings, start, options, read_exif(path))
 

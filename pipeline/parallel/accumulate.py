@@ -25,15 +25,16 @@ LANES = 2
 
 
 # ----------------------------------------------------------------------------- frame leaves
-def _warped_leaf(path: str, homography, weight, shape, support: str | None = None):
-    """Read one frame, warp it onto the reference, weight it; its clipped pixels; decode
-    time; with ``support`` (``"range"`` or ``"full"``), its
+def _warped_leaf(path: str, homography, weight, shape, support: str | None = None, white=None):
+    """Read one frame (with white level ``white``, :func:`pipeline.io.read.read_frame`),
+    warp it onto the reference, weight it; its clipped pixels; decode time; with
+    ``support`` (``"range"`` or ``"full"``), its
     :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``).
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
     """
     t0 = time.perf_counter()
-    frame = read_frame(path)
+    frame = read_frame(path, white=white)
     read_s = time.perf_counter() - t0
     if homography is not None:
         frame = align.warp(frame, homography, shape)
@@ -54,10 +55,10 @@ def _merge(a, b):
     return a[0], a[1], a[2] + b[2], None if a[3] is None else a[3].merge(b[3])
 
 
-def _add_frame(partial, path: str, homography, weight, shape, support: str | None = None):
+def _add_frame(partial, path: str, homography, weight, shape, support=None, white=None):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
-    leaf = _warped_leaf(path, homography, weight, shape, support)
+    leaf = _warped_leaf(path, homography, weight, shape, support, white)
     return leaf if partial is None else _merge(partial, leaf)
 
 
@@ -69,6 +70,7 @@ def weighted_sum_graph(
     *,
     lanes: int = LANES,
     support: str | None = None,
+    white: float | None = None,
 ):
     """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
 
@@ -81,7 +83,8 @@ def weighted_sum_graph(
     order), not on the scheduler or its threads. Returns a Delayed yielding
     ``(sum, clipped_any_frame, decode_seconds, support)``; ``support`` is the read
     frames' :class:`~pipeline.core.frame_support.FrameSupport` when asked for (``"range"``:
-    their per-pixel range only; ``"full"``: all of it), else ``None``.
+    their per-pixel range only; ``"full"``: all of it), else ``None``. ``white``: the
+    frames' white level (:func:`pipeline.io.read.read_frame`).
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")
@@ -97,7 +100,7 @@ def weighted_sum_graph(
             # pure=False: equal steps (a frame listed twice, first in two lanes) stay separate
             # tasks; a shared one would be added into, in place, by two later steps
             partial = dask.delayed(_add_frame, pure=False)(
-                partial, path, h, w, tuple(shape), support
+                partial, path, h, w, tuple(shape), support, white
             )
         level.append(partial)
     while len(level) > 1:

@@ -130,6 +130,7 @@ def plan_stacks(
             align=merged.get("align", "estimate"),
             encoding=workflow.encoding,
             blur_span_px=merged.get("blur_span_px"),
+            white=merged.get("white"),
             tile_px=merged.get("tile_px", 1024),
             align_max_side_px=merged.get("align_max_side_px", 768),
             frame_guard=merged.get("frame_guard", False),

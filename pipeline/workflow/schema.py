@@ -24,6 +24,7 @@ _OPTION_KEYS = (
     "method",
     "align",
     "blur_span_px",
+    "white",
     "tile_px",
     "align_max_side_px",
     "frame_guard",
@@ -121,10 +122,10 @@ def _parse_options(path: Path, table: dict, where: str) -> dict:
     for key, value in table.items():
         if key in ("lens", "method", "align"):
             _typed(path, where, key, value, str)
-        elif key == "blur_span_px":
+        elif key in ("blur_span_px", "white"):
             _typed(path, where, key, value, (int, float))
-            if not value > 0:
-                raise InputError(f"{path}: blur_span_px{where} must be > 0, got {value!r}")
+            if not 0 < value < float("inf"):
+                raise InputError(f"{path}: {key}{where} must be a finite number > 0, got {value!r}")
             value = float(value)
         elif key in ("frame_guard", "frame_range"):
             _typed(path, where, key, value, bool)
