@@ -21,9 +21,9 @@ three-plane stack whose far plane lies beyond the frames' range goes from 25.98 
 frame gains 5.3 dB at sigma 0.01 (28.07 -> 33.36 dB); where the end frames lie on the
 near and far planes the whole stack goes from 26.29 (the correction beyond the ends
 only) to 27.43 dB with the ends' own depths and the fit kept off depth edges, and to
-29.86 dB with the end frame's check: without it, across an occlusion edge the end's
+29.65 dB with the end frame's check: without it, across an occlusion edge the end's
 kernel restored one side and rang into the other (16 px strips along the edges: 22.40
-dB, 25.69 dB with the check). On the real stacks the regions as good as focus-stack went
+dB, 25.4 dB with the check). On the real stacks the regions as good as focus-stack went
 from 0/8/4/7 to 2/8/7/8 with the correction beyond the ends, and are 2/8/7/7 with the
 ends' own depths, the fit kept off depth edges and the end frame's check
 (``tests/benchmarks/results/real_regions/NOTE.md``, stops 27 and 28).
@@ -39,7 +39,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from pipeline.core import defocus, spectra
-from pipeline.core.stack_kernel import depth_kernel
+from pipeline.core.stack_kernel import depth_kernel, frame_kernels
 from pipeline.errors import InputError
 
 log = logging.getLogger(__name__)
@@ -50,9 +50,11 @@ CORRECTION_SIDE_PX = 384  # the correction runs at 1 / (shorter side // this), a
 MAX_REDUCTION = 4  # ... a quarter of the resolution (pcb7's 1536 px: 384 px, 0.1 s)
 BLEND_FLOOR = 1e-3  # rows where the blend weight stays below this are left as they are
 # the end frame's check of the correction (:func:`_frame_agreement`): the window (px at the
-# correction's resolution) and the gain (the whole correction where the frame shows half of it)
+# correction's resolution), the gain (the whole correction where the frame shows half of it)
+# and the prior's weight (in the image's mean local variance of the correction)
 AGREEMENT_SIGMA_PX = 2.0
 AGREEMENT_GAIN = 2.0
+AGREEMENT_PRIOR = 1.0
 # an end whose content covers less of the frame than this is left to the stack's kernel (the
 # correction would cost its 0.05-0.1 s for nothing; amber's 2.7% gains a region)
 MIN_FRACTION = 0.01
@@ -67,6 +69,7 @@ class EndKernel:
     kernel: np.ndarray
     weight: np.ndarray  # blend weight at the previews' resolution (float32)
     frame_image: np.ndarray  # the end frame, grey and aligned, at the correction's size
+    frame_kernel: np.ndarray  # the end frame's own PSF at that depth (full resolution)
 
 
 def correction_factor(shape) -> int:
@@ -107,7 +110,10 @@ def end_kernels(fit, positions, weights, span_px, *, lens, absolute, read_end) -
         kernel = depth_kernel(
             positions, weights, at, lens=lens, absolute=absolute, blur_span_px=span_px
         ).astype(np.float32)
-        out.append(EndKernel(end.frame, end.beyond, kernel, weight, read_end(end.frame)))
+        own = frame_kernels(
+            positions, at, lens=lens, absolute=absolute, blur_span_px=span_px
+        )[end.frame].astype(np.float32)
+        out.append(EndKernel(end.frame, end.beyond, kernel, weight, read_end(end.frame), own))
     return out
 
 
@@ -116,6 +122,18 @@ def _reduced_kernel(kernel: np.ndarray, factor: int) -> np.ndarray:
     side = max(3, (kernel.shape[0] // factor) | 1)
     small = cv2.resize(np.asarray(kernel, np.float32), (side, side), interpolation=cv2.INTER_AREA)
     return small.astype(np.float64) / float(small.sum())
+
+
+def _own_kernel(kernel: np.ndarray, factor: int) -> np.ndarray:
+    """An end frame's own PSF at ``1 / factor`` of the resolution: cropped to its support
+    (kernels of one stack share a size), a single pixel where it is no wider than ``factor``
+    full-resolution pixels (an end frame's own depth)."""
+    h = kernel.shape[0] // 2
+    support = np.flatnonzero(kernel.max(axis=0) > 1e-6 * kernel.max())
+    half = int(max(h - support[0], support[-1] - h)) if support.size else 0
+    if 2 * half + 1 <= factor:
+        return np.ones((1, 1))
+    return _reduced_kernel(kernel[h - half : h + half + 1, h - half : h + half + 1], factor)
 
 
 def _reduced_correction(average, end_kernel, stack_kernel, factor: int) -> np.ndarray:
@@ -157,28 +175,37 @@ def _reduced_correction(average, end_kernel, stack_kernel, factor: int) -> np.nd
     ).astype(np.float32)
 
 
-def _frame_agreement(result, delta, frame_image) -> np.ndarray:
+def _frame_agreement(result, delta, frame_image, frame_kernel) -> np.ndarray:
     """How much of the correction ``delta`` (:func:`_reduced_correction`) the end frame
     supports, per pixel (0..1, at ``result``'s resolution), checked at the correction's
-    resolution (``delta``'s and ``frame_image``'s).
+    resolution (``delta``'s, ``frame_image``'s and ``frame_kernel``'s).
 
-    Where the end frame is the sharpest, it shows its content with the detail the stack's
-    IPSF left out, so ``result + delta`` should move towards it: locally (a Gaussian window
-    of ``AGREEMENT_SIGMA_PX``), the regression slope of ``frame - result`` on ``delta``
-    is about 1. Where it is not (0 or below), the correction is not the frame's content:
-    across an occlusion edge, the end kernel rings into the other depth, which the end
-    frame shows blurred; where the fitted end depth overshoots (the far end of the
-    end-frames scene reads 0.12 of the range beyond it, where the truth is 0), the frame
-    shows less than the correction adds. The weight is ``AGREEMENT_GAIN`` times the slope,
-    clipped to [0, 1]: the whole correction wherever the frame supports half of it, so
-    content beyond the range, which the end frame shows slightly blurred, keeps it
-    (the window's mean is removed first: the frames' exposure and the stack's haze do not
-    count). Measured (``tests/benchmarks/synthetic_guard.py``): the end-frames scene
-    27.43 -> 29.86 dB; the far plane beyond the frames 27.64 -> 27.62 dB.
+    If the correction is right, the end frame shows the corrected image blurred by its own
+    PSF at that depth (``frame_kernel``: a single pixel at the end frame's own depth, a
+    small disc beyond it; Eqs. 2-4): ``frame = K (result + delta)``. Locally (a Gaussian
+    window of ``AGREEMENT_SIGMA_PX``, the window's mean removed, so the frames' exposure
+    and the stack's haze do not count) the regression slope of ``frame - K result`` on
+    ``K delta`` is then about 1. It is 0 or below where the correction is not the end's
+    content: across an occlusion edge, the end kernel rings into the other depth, which
+    the end frame shows far more blurred; where the fitted end depth overshoots (the far
+    end of the end-frames scene reads 0.12 of the range beyond it, where the truth is 0),
+    the frame shows less than the correction adds. The slope is shrunk towards 1 by a
+    prior of ``AGREEMENT_PRIOR`` times the image's mean local variance of the correction,
+    so only clear evidence takes a correction away: without it, on real stacks the slope
+    read noise and JPEG artefacts and kept 0.44-0.77 of the blend at some ends, costing 5
+    regions over seven sub-stacks of the real ones (``real_stack_regions.py --stack``;
+    ``tests/benchmarks/results/real_regions/NOTE.md``, stop 28). The weight is
+    ``AGREEMENT_GAIN`` times the slope, clipped to [0, 1]: the whole correction wherever the
+    frame supports half of it. Measured (``tests/benchmarks/synthetic_guard.py``): the
+    end-frames scene 27.43 -> 29.65 dB; the far plane beyond the frames 27.64 dB, as
+    without the check.
     """
     rows, cols = result.shape[:2]
     small = cv2.resize(result, frame_image.shape[::-1], interpolation=cv2.INTER_AREA)
     r, d = (x.mean(axis=2) if x.ndim == 3 else x for x in (small, delta))
+    if frame_kernel.size > 1:
+        k = frame_kernel.astype(np.float32)
+        r, d = (cv2.filter2D(x, -1, k, borderType=cv2.BORDER_REFLECT) for x in (r, d))
     e = frame_image - r
     # one common scale: the slope does not change, and products of frames in other units
     # (1e38: tests/test_ingestion.py) cannot overflow float32
@@ -191,7 +218,8 @@ def _frame_agreement(result, delta, frame_image) -> np.ndarray:
     mean_d, mean_e = local(d), local(e)
     covariance = local(d * e) - mean_d * mean_e
     variance = local(d * d) - mean_d * mean_d
-    slope = covariance / np.maximum(variance, 1e-12)
+    prior = AGREEMENT_PRIOR * float(np.mean(variance))
+    slope = (covariance + prior) / np.maximum(variance + prior, 1e-12)
     weight = np.clip(AGREEMENT_GAIN * slope, 0, 1).astype(np.float32)
     return cv2.resize(weight, (cols, rows), interpolation=cv2.INTER_LINEAR)
 
@@ -208,7 +236,8 @@ def restore_ends(result, average, ends: list[EndKernel], stack_kernel) -> list[d
     for end in ends:
         weight = cv2.resize(end.weight, shape[::-1], interpolation=cv2.INTER_LINEAR)
         small = _reduced_correction(average, end.kernel, stack_kernel, factor)
-        blend = weight * _frame_agreement(result, small, end.frame_image)
+        own = _own_kernel(end.frame_kernel, factor)
+        blend = weight * _frame_agreement(result, small, end.frame_image, own)
         delta = cv2.resize(small, shape[::-1], interpolation=cv2.INTER_CUBIC)
         delta = delta.reshape(result.shape)
         rows = np.flatnonzero(blend.max(axis=1) >= BLEND_FLOOR)  # the rows it changes

@@ -163,6 +163,20 @@ def run_flexdof(name: str, pattern: str, work: Path, extra: list[str]) -> Path:
     return out
 
 
+def run_focus_stack(name: str, pattern: str, work: Path, binary: str | None) -> Path | None:
+    """focus-stack's result: the shared one for the four stacks (made as in its
+    SOURCE.txt), else made here with ``binary`` the same way and cached; None without."""
+    shared = FOCUS_STACK / f"{name}.png"
+    if shared.exists():
+        return shared
+    out = work / f"{name}_focus-stack.png"
+    if out.exists() or binary is None:
+        return out if out.exists() else None
+    files = sorted(glob.glob(str(SHARED / pattern)))
+    subprocess.run([binary, f"--output={out}", *files], check=True, capture_output=True)
+    return out
+
+
 def run_enfuse(name: str, pattern: str, work: Path) -> Path | None:
     """Cached align_image_stack + enfuse result, or None when they are not installed."""
     out = work / f"{name}_enfuse.tif"
@@ -234,7 +248,9 @@ def crop_windows(
 
 
 # ----------------------------------------------------------------------------- one stack
-def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
+def evaluate(
+    name: str, pattern: str, result: Path, work: Path, out: Path, focus_stack: str | None = None
+) -> dict:
     t0 = time.perf_counter()
     side = json.loads(Path(str(result) + ".json").read_text())
     flex = read_srgb(result)
@@ -255,8 +271,8 @@ def evaluate(name: str, result: Path, work: Path, out: Path) -> dict:
     choice = np.argmax(np.stack(energy), axis=0)
     composite = np.take_along_axis(np.stack(frames), choice[None, ..., None], axis=0)[0]
     peers = {
-        "focus-stack": FOCUS_STACK / f"{name}.png",
-        "enfuse": run_enfuse(name, STACKS[name], work),
+        "focus-stack": run_focus_stack(name, pattern, work, focus_stack),
+        "enfuse": run_enfuse(name, pattern, work),
     }
     for peer, path in peers.items():
         if path is None or not Path(path).exists():
@@ -438,21 +454,36 @@ def main() -> int:
         "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "real_regions"
     )
     parser.add_argument("--work", type=Path, help="flexdof/enfuse outputs (default OUT/work)")
+    parser.add_argument(
+        "--stack",
+        action="append",
+        default=[],
+        metavar="NAME=GLOB",
+        help="another stack: its frames, a glob relative to the shared data folder (e.g. "
+        "pcb10a=focusstack-pcb/pcb10/pcb_00[0-5].JPG); list NAME in --stacks",
+    )
+    parser.add_argument(
+        "--focus-stack",
+        metavar="PATH",
+        help="the focus-stack binary, for the peer result of stacks given with --stack "
+        "(bash ../shared/tools/build-focus-stack.sh prints it)",
+    )
     args = parser.parse_args()
+    stacks = {**STACKS, **dict(item.split("=", 1) for item in args.stack)}
     given = dict(item.split("=", 1) for item in args.result)
     work = args.work or args.out / "work"
     work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
     for name in args.stacks.split(","):
-        if name not in STACKS:
-            raise SystemExit(f"unknown stack {name!r}; choose from {', '.join(STACKS)}")
+        if name not in stacks:
+            raise SystemExit(f"unknown stack {name!r}; choose from {', '.join(stacks)}")
         result = (
             Path(given[name])
             if name in given
-            else run_flexdof(name, STACKS[name], work, shlex.split(args.flexdof_args))
+            else run_flexdof(name, stacks[name], work, shlex.split(args.flexdof_args))
         )
-        results[name] = evaluate(name, result, work, args.out)
+        results[name] = evaluate(name, stacks[name], result, work, args.out, args.focus_stack)
         a, n = good_regions(results[name]["scores"])
         print(
             f"{name}: flexdof >= focus-stack on every measure in {a}/{n} regions "
