@@ -246,9 +246,9 @@ def test_the_streamed_ends_keep_only_the_frames_the_fit_reads(tmp_path, sharp):
 def test_the_frame_check_keeps_the_correction_only_where_the_end_frame_shows_it():
     """Where the correction is strong (left), the end frame decides: a frame that shows
     it (frame = result + delta, 0.2 brighter: another exposure), or half of it, keeps it
-    whole, one that shows the opposite (the correction sharpens what the frame shows blurred) takes it
-    away. Where it is weak (right: a tenth of the left's amplitude), the prior keeps it
-    whatever the frame shows. Colour result and correction, grey frame."""
+    whole, one that shows the opposite (the correction sharpens what the frame shows
+    blurred) takes it away. Where it is weak (right: a tenth of the left's amplitude), the
+    prior keeps it whatever the frame shows. Colour result and correction, grey frame."""
     from scipy import ndimage
 
     from pipeline.jobs import ends

@@ -478,3 +478,27 @@ def test_a_white_level_divides_float_tiffs_and_is_refused_for_codes(tmp_path):
     for bad in (0.0, -1.0, math.inf, math.nan):
         with pytest.raises(InputError, match="white must be a finite number > 0"):
             read_frame(tmp_path / "counts.tif", white=bad)
+
+
+@pytest.mark.parametrize("side", [768, 320])
+def test_raw_previews_come_from_a_half_size_decode(shared_data, side, monkeypatch):
+    """A RAW preview at most half the frame comes from LibRaw's half-size decode (each 2x2
+    Bayer block one pixel): the same light and geometry as the full decode reduced (the
+    real 550D DNG: means within 0.02%, 0.6-1.4% apart per pixel, 0.06 px apart), and the
+    full decode is not run. A white level is refused as for read_frame."""
+    from pipeline.io import read
+
+    path = shared_data / "raw-dng-canon550d" / "colorchart.dng"
+    full = read.read_frame(path).mean(axis=2)
+    calls = []
+    monkeypatch.setattr(read, "read_frame", lambda *a, **k: calls.append(a) or full)
+    preview = read.read_preview(path, side)
+    assert not calls  # the half-size decode, not the full one
+    reduced = cv2.resize(full, preview.shape[::-1], interpolation=cv2.INTER_AREA)
+    assert abs(float(preview.mean() / reduced.mean()) - 1) < 2e-3
+    assert float(np.mean(np.abs(preview - reduced)) / reduced.mean()) < 0.03
+    (dx, dy), _ = cv2.phaseCorrelate(reduced.astype(np.float64), preview.astype(np.float64))
+    assert np.hypot(dx, dy) < 0.15
+    monkeypatch.undo()
+    with pytest.raises(InputError, match=r"colorchart\.dng: a white level"):
+        read.read_preview(path, side, white=2.0)

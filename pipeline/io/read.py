@@ -142,7 +142,9 @@ def read_preview(path: str | Path, max_side_px: int, *, white: float | None = No
     """A reduced grey copy (float32 linear light, longest side ``max_side_px``) of a frame.
 
     JPEGs are decoded at 1/2, 1/4 or 1/8 scale in the DCT domain (much cheaper than
-    a full decode); other formats are decoded fully and reduced with area
+    a full decode), RAW files at half size (each 2x2 Bayer block one pixel, without
+    demosaicing: 0.05 against 0.24 s for an 1734x1156 DNG) when the preview is at most
+    half the frame; other formats are decoded fully. Then they are reduced with area
     averaging. The geometry is that of ``cv2.resize`` of the full frame. ``white``: as
     for :func:`read_frame`.
     """
@@ -166,6 +168,8 @@ def read_preview(path: str | Path, max_side_px: int, *, white: float | None = No
         if decoded is None:
             raise InputError(f"{p}: OpenCV cannot decode it (corrupt JPEG data)")
         image = _decode_codes(_to_rgb(decoded, p, bgr=True), "srgb", p)
+    if _kind(p) == "raw" and full_side >= 2 * max_side_px and white is None:
+        image = _read_raw(p, half_size=True)
     if image is None:
         image = read_frame(p, white=white)
     if image.ndim == 3:  # (r + g) + b, then / 3: numpy's float32 mean, without its copies
@@ -273,12 +277,15 @@ def _imdecode_jpeg(data: bytes, flags: int, path: Path):
         exclusive = True  # this frame or one decoding beside it: decode it again alone
 
 
-def _read_raw(path: Path) -> np.ndarray:
+def _read_raw(path: Path, *, half_size: bool = False) -> np.ndarray:
+    """A RAW file as linear float32 RGB; ``half_size``: each 2x2 Bayer block as one pixel
+    (no demosaicing; LibRaw's fast path for reduced copies, about 5x faster)."""
     import rawpy  # only RAW frames need it (an import JPEG/TIFF stacks do not pay)
 
     try:
         with rawpy.imread(str(path)) as raw:
             rgb16 = raw.postprocess(
+                half_size=half_size,
                 gamma=(1, 1),  # linear output curve
                 no_auto_bright=True,
                 adjust_maximum_thr=0.0,  # keep the file's white level, never the data maximum
