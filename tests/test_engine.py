@@ -380,6 +380,11 @@ def test_float_frames_in_other_units_take_their_white_level(tmp_path, sharp, cap
     with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
         given = run("given.tif", white=1000.0)
     assert not warnings() and given.sidecar["white"] == 1000.0
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        run("low.tif", white=100.0)  # a white level given, but 10x too low
+    messages = [r.getMessage() for r in caplog.records]
+    (message,) = [m for m in messages if "white level 100 given" in m]
+    assert "check --white" in message
     assert unit.sidecar["frame_range"]["flat_fraction"] > 0
     assert given.sidecar["frame_range"] == unit.sidecar["frame_range"]
     np.testing.assert_allclose(given.image, unit.image, atol=1e-5)  # measured 1.2e-6

@@ -102,15 +102,26 @@ def check_white(stack: Stack, average: np.ndarray) -> None:
     with the range off (frames scaled by 1000: 29.61 against 30.60 dB on the three planes;
     with ``--white 1000`` as in [0, 1])."""
     peak = float(np.max(average)) if average.size else 0.0
-    if peak > OTHER_UNITS_ABOVE:
+    if peak <= OTHER_UNITS_ABOVE:
+        return
+    if stack.white is not None:  # given, but too low
         log.warning(
-            "%s: the frames' average reaches %.4g where white is 1 (float TIFFs are linear "
-            "light with white at 1): pixels at or above 1 count as clipped and the frames' "
-            "range is not applied there; give the frames' white level with --white LEVEL "
-            "(or white = LEVEL in stack.toml)",
+            "%s: the frames' average reaches %.4g times the white level %g given: pixels at "
+            "or above it count as clipped and the frames' range is not applied there; check "
+            "--white (or white in stack.toml)",
             _describe_frames(stack),
             peak,
+            stack.white,
         )
+        return
+    log.warning(
+        "%s: the frames' average reaches %.4g where white is 1 (float TIFFs are linear "
+        "light with white at 1): pixels at or above 1 count as clipped and the frames' "
+        "range is not applied there; give the frames' white level with --white LEVEL "
+        "(or white = LEVEL in stack.toml)",
+        _describe_frames(stack),
+        peak,
+    )
 
 
 def check_lens_size(stack: Stack, lens: Lens | None, shape: tuple[int, ...]) -> None:
