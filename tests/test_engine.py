@@ -367,6 +367,7 @@ def test_float_frames_in_other_units_take_their_white_level(tmp_path, sharp, cap
 
     with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
         unit = run("unit.tif")
+    unit_multi = run("unit_multi.tif", method="multiframe")  # it reads the frames again
     assert not warnings() and unit.sidecar["white"] is None
     for path in sorted(folder.glob("frame_*.tif")):
         write_image(path, read_frame(path) * 1000.0, encoding="float32")
@@ -388,6 +389,8 @@ def test_float_frames_in_other_units_take_their_white_level(tmp_path, sharp, cap
     assert unit.sidecar["frame_range"]["flat_fraction"] > 0
     assert given.sidecar["frame_range"] == unit.sidecar["frame_range"]
     np.testing.assert_allclose(given.image, unit.image, atol=1e-5)  # measured 1.2e-6
+    given_multi = run("given_multi.tif", white=1000.0, method="multiframe")
+    np.testing.assert_allclose(given_multi.image, unit_multi.image, atol=1e-5)
     assert np.max(np.abs(scaled.image / 1000.0 - unit.image)) > 0.01  # not so without it
     toml = folder / "stack.toml"
     toml.write_text("white = 1000\n" + toml.read_text())

@@ -1,5 +1,7 @@
 """Focus-sweep captures (Sec. 4, 8): single images, sequences, EDOF video, sweep stack dirs."""
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -117,6 +119,14 @@ def test_sweep_stack_directory(tmp_path, scene):
     out = tmp_path / "edof.tif"
     assert main(["stack", str(tmp_path), "-o", str(out), "--float"]) == 0
     assert psnr(read_frame(out), scene) > psnr(read_frame(tmp_path / "capture.tif"), scene) + 3
+    # the capture in other units (x 4095), its white level in stack.toml: the same result
+    write_image(tmp_path / "capture.tif", read_frame(tmp_path / "capture.tif") * 4095.0,
+                encoding="float32")
+    toml = tmp_path / "stack.toml"
+    toml.write_text("white = 4095\n" + toml.read_text())
+    assert main(["stack", str(tmp_path), "-o", str(tmp_path / "counts.tif"), "--float"]) == 0
+    np.testing.assert_allclose(read_frame(tmp_path / "counts.tif"), read_frame(out), atol=1e-5)
+    assert json.loads((tmp_path / "counts.tif.json").read_text())["white"] == 4095.0
 
 
 def test_near_beyond_far_is_a_clear_error(tmp_path, capsys):
