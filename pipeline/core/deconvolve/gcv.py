@@ -13,6 +13,9 @@ it is trusted only where its noise agrees with the data's own estimate (``GCV_TR
 or, when that estimate is only an upper bound (no noise level given), where its minimum is
 the grid's floor and it scores the prior fit's ``lam`` clearly worse (``GCV_FLOOR_MARGIN``:
 clean texture that the estimate read as noise); elsewhere the natural-prior fit decides.
+Where it is trusted but reads more noise than the data's own estimate, its ``lam`` is
+scaled to that estimate (:func:`pipeline.core.deconvolve.wiener._plan_wiener`): the excess
+is the kernel's mismatch, no noise.
 Issue 13: on nine-frame synthetic stacks with noise sigma 0.01 and 0.02 the prior fit left
 0.4 and 1.8 dB to a ``lam`` tuned on the truth; GCV was within 0.1 dB of it. On a clean
 ray-traced depth edge the floor rule took the default from 1.5 to 0.08 dB of it.
