@@ -318,3 +318,25 @@ def test_the_end_correction_does_not_ring_across_occlusion_edges(tmp_path, sharp
         strips[:, border - 16 : border + 16] = True
     assert psnr(default, sharp) > psnr(plain, sharp) + 1.0
     assert psnr(default[strips], sharp[strips]) > psnr(plain[strips], sharp[strips]) - 0.5
+
+
+def test_a_scene_mostly_beyond_an_end_of_the_range_is_warned_about(
+    tmp_path, shared_data, caplog
+):
+    """pcb10's frames 4-9: most of the board is sharpest in pcb10's frames 2-3, so the
+    near end frame is the sharpest over 87% of the image and the result stays softer than
+    that frame; the user is told (and how to help it). All of pcb10: no warning."""
+    import logging
+
+    frames = sorted((shared_data / "focusstack-pcb" / "pcb10").glob("pcb_*.JPG"))
+    for name, subset, warned in (("part", frames[4:], True), ("all", frames, False)):
+        caplog.clear()
+        with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+            process_stack(subset, tmp_path / f"{name}.tif")
+        messages = [m.getMessage() for m in caplog.records]
+        messages = [m for m in messages if "sharpest frame over" in m]
+        assert bool(messages) == warned, messages
+        if warned:
+            (message,) = messages
+            assert "pcb_004.JPG is the sharpest frame over 87%" in message
+            assert "--frame-guard" in message
