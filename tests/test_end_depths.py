@@ -340,3 +340,17 @@ def test_a_scene_mostly_beyond_an_end_of_the_range_is_warned_about(
             (message,) = messages
             assert "pcb_004.JPG is the sharpest frame over 87%" in message
             assert "--frame-guard" in message
+
+
+def test_a_scene_mostly_at_an_end_frames_own_depth_is_not_warned_about(tmp_path, sharp, caplog):
+    """Two thirds of the image at the near end frame's own depth (500 mm): that frame is the
+    sharpest over 61% of it, but its own kernel restores it (no content beyond the range),
+    so there is nothing to warn about."""
+    import logging
+
+    make_stack(tmp_path, sharp, [500.0, 500.0, 1600.0], positions_for(500, 1600, 9), noise=0.01)
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        job = process_stack(tmp_path, tmp_path / "d.tif", StackOptions(encoding="float32"))
+    ends = {e["frame"]: e for e in job.sidecar["frame_range"]["beyond_ends"]}
+    assert ends["frame_08.tif"]["fraction"] > 0.5 and ends["frame_08.tif"]["beyond_range"] < 0.02
+    assert not [r for r in caplog.records if "sharpest frame over" in r.getMessage()]

@@ -59,7 +59,8 @@ log = logging.getLogger(__name__)
 
 PREVIEW_SIDE_PX = 320  # resolution of the defocus (blur-span) fit
 OTHER_UNITS_ABOVE = 1.5  # an average this far above white (1): frames in other units
-END_DOMINANT = 0.5  # an end frame the sharpest over more of the image than this: warned
+END_DOMINANT = 0.5  # an end frame the sharpest over more of the image than this: warned,
+END_BEYOND = 0.02  # ... if its content lies at least this share of the range beyond it
 # The estimated alignment is kept only if the blur model explains the aligned frames clearly
 # better than unaligned ones (issue 13: ECC, biased by the frames' depth-dependent blur,
 # invents a breathing of up to 1.9% on stacks without any); judged at this resolution
@@ -126,18 +127,20 @@ def check_white(stack: Stack, average: np.ndarray) -> None:
 
 
 def check_end_dominance(stack: Stack, ends: list[dict]) -> None:
-    """Warn when an end frame is the sharpest over most of the image (``END_DOMINANT``): the
-    scene lies mostly at or beyond that end of the focus range, where the stack's kernel and
-    the ends' correction restore least (Sec. 4.1). pcb10's frames 4-9, whose content is
-    sharpest in pcb10's frames 2-3, leave 87% to frame 4, and the result is softer than that
-    frame in 8 of 9 regions; ``--frame-guard`` takes it there (0/9 -> 4/9 regions as good as
-    focus-stack, ``tests/benchmarks/results/real_regions/NOTE.md``, stop 28)."""
-    for end in ends:
-        if end["fraction"] > END_DOMINANT:
+    """Warn when an end frame is the sharpest over most of the image (``END_DOMINANT``) and
+    its content lies beyond it (``END_BEYOND``): the scene lies mostly beyond that end of the
+    focus range, where the stack's kernel and the ends' correction restore least (Sec. 4.1).
+    pcb10's frames 4-9, whose content is sharpest in pcb10's frames 2-3, leave 87% to frame
+    4 (0.047 of the range beyond it), and the result is softer than that frame in 8 of 9
+    regions; ``--frame-guard`` takes it there from 0/9 to 4/9 regions as good as focus-stack
+    (``tests/benchmarks/results/real_regions/NOTE.md``, stop 28). Content at the end frame's
+    own depth (a scene two thirds at it: 61%, 0.0 beyond) is restored by its own kernel."""
+    for end in ends:  # content at the end frame itself is restored by its own kernel
+        if end["fraction"] > END_DOMINANT and end["beyond_range"] >= END_BEYOND:
             log.warning(
                 "%s: %s is the sharpest frame over %.0f%% of the image: most of the scene lies "
-                "at or beyond its focus, the end of the stack's focus range, where the result "
-                "is restored least; add frames focused beyond it, or try --frame-guard",
+                "beyond its focus, the end of the stack's focus range, where the result is "
+                "restored least; add frames focused beyond it, or try --frame-guard",
                 _describe_frames(stack),
                 end["frame"],
                 100 * end["fraction"],
