@@ -39,7 +39,7 @@ from pipeline.core.weights import constant_speed_weights
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
-from pipeline.io.read import read_preview
+from pipeline.io.read import read_frame, read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
 from pipeline.jobs.multiframe import restore_multiframe
@@ -77,6 +77,7 @@ CHOICE_MARGIN_FITTED = 0.0
 # overshoots is clipped to the frames' range (pipeline.core.frame_support).
 FITTED_SPAN_SCALE = 2.0
 MIN_FRAME_SIDE_PX = 8  # smaller frames hold no usable detail (and no room for a kernel)
+COVERED = 0.999  # a warped frame's pixels with this much coverage are its own (not edge fill)
 
 
 # ----------------------------------------------------------------------------- limits
@@ -254,6 +255,23 @@ def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
     size = reduced_size(aligned.shape, correction_factor(aligned.shape))
     preview = read_preview(aligned.stack.files[index], max(size), white=aligned.stack.white)
     return _aligned_at(preview, aligned.alignments[index], aligned.shape, size)
+
+
+def _aligned_frame(aligned: AlignedStack, index: int, box) -> tuple[np.ndarray, np.ndarray]:
+    """The ``box`` (rows, columns) of frame ``index`` aligned at full resolution (bicubic:
+    its fine detail is used as it is, :func:`pipeline.jobs.ends.keep_end_detail`), and
+    where the frame covers it."""
+    rows, cols = box
+    shift = np.array([[1.0, 0.0, -cols.start], [0.0, 1.0, -rows.start], [0.0, 0.0, 1.0]])
+    frame = read_frame(aligned.stack.files[index], white=aligned.stack.white)
+    image, coverage = align.warp(
+        frame,
+        shift @ aligned.alignments[index].homography,
+        (rows.stop - rows.start, cols.stop - cols.start),
+        return_coverage=True,
+        interpolation="cubic",
+    )
+    return image, coverage > COVERED
 
 
 def _streamed_end_previews(aligned: AlignedStack):
@@ -559,7 +577,14 @@ def process_stack(
             "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
     elif frames is not None:
-        ends = restore_ends(result, average, beyond, kernel)
+        ends = restore_ends(
+            result,
+            average,
+            beyond,
+            kernel,
+            read_frame=lambda i, box: _aligned_frame(aligned, i, box),
+            clipped=clipped,
+        )
         for end in ends:
             end["frame"] = stack.files[end["frame"]].name
         check_end_dominance(stack, ends)
