@@ -351,6 +351,10 @@ def keep_end_detail(result, frame, weight, noise) -> float:
     """
     w = np.where(weight >= BLEND_FLOOR, weight, 0.0).astype(np.float32)  # others stay
     image, own = _grey(result), _grey(np.asarray(frame, np.float32))
+    # one common scale: nothing changes, and squares of frames in other units (1e38:
+    # tests/test_ingestion.py) cannot overflow float32
+    scale = max(float(np.max(np.abs(image))), float(np.max(np.abs(own))), 1e-30)
+    image, own, noise = image / np.float32(scale), own / np.float32(scale), noise / scale
     added = np.zeros_like(image)
     most = np.zeros(w.shape, np.float32)
     fine_image, fine_own, fine_px = image, own, 0.0
@@ -378,6 +382,6 @@ def keep_end_detail(result, frame, weight, noise) -> float:
         np.clip(gain, -1.0, MAX_DETAIL_GAIN - 1.0, out=gain)
         result *= cv2.merge([gain + np.float32(1.0)] * 3)
     else:
-        result += added
+        result += added * np.float32(scale)
     area = float(np.sum(w > 0.5))
     return float(np.sum((most > 0.5) & (w > 0.5)) / area) if area else 0.0
