@@ -34,6 +34,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
+from concurrent.futures import ThreadPoolExecutor
 
 import cv2
 import numpy as np
@@ -271,17 +272,29 @@ def restore_ends(
             }
         )
     if read_frame is not None:  # after every end's correction, each frame's detail
-        for end, blend, entry in zip(ends, blends, report):
-            box = _detail_box(blend)
-            if box is None:
-                continue
-            frame, covered = read_frame(end.frame, box)
+        boxes = [_detail_box(blend) for blend in blends]
+
+        def detail(i: int) -> None:
+            box, blend = boxes[i], blends[i]
+            frame, covered = read_frame(ends[i].frame, box)
             weight = blend[box] * covered
             if clipped is not None:
                 weight *= ~clipped[box]
             noise = float(frame_noise(_grey(frame), covered)[0])  # the grey bands' noise
-            entry["detail_kept"] = round(keep_end_detail(result[box], frame, weight, noise), 4)
+            share = keep_end_detail(result[box], frame, weight, noise)
+            report[i]["detail_kept"] = round(share, 4)
+
+        todo = [i for i, box in enumerate(boxes) if box is not None]
+        # the two ends side by side where they change disjoint boxes (pcb7: 0.08 s less)
+        apart = len(todo) == 2 and not _overlap(*(boxes[i] for i in todo))
+        with ThreadPoolExecutor(2 if apart else 1, thread_name_prefix="flexdof-ends") as pool:
+            list(pool.map(detail, todo))
     return report
+
+
+def _overlap(a, b) -> bool:
+    """Whether two (rows, columns) boxes share a pixel."""
+    return all(x.start < y.stop and y.start < x.stop for x, y in zip(a, b))
 
 
 def _detail_box(blend) -> tuple[slice, slice] | None:
@@ -314,6 +327,33 @@ _MEAN = np.full((1, 3), 1 / 3, np.float32)
 
 def _grey(image: np.ndarray) -> np.ndarray:
     return cv2.transform(image, _MEAN) if image.ndim == 3 else image
+
+
+class _Smooth:
+    """A Gaussian window of ``window_px`` over images of ``shape``, run at a reduced
+    resolution (``window_px / 2`` times coarser): what it smooths varies over the window
+    and more, so the reduction changes it little (the local energies of pcb7's last frame:
+    by 1.4% at the median, 6% at the 90th percentile) for a quarter to a sixteenth of the
+    work. ``down`` smooths and reduces, ``up`` smooths the
+    reduced image and brings it back to ``shape``."""
+
+    def __init__(self, window_px: float, shape):
+        self.factor = max(1, int(window_px // 2))
+        self.window = window_px / self.factor
+        self.shape = shape[:2]
+        rows, cols = self.shape
+        self.small = (max(1, -(-cols // self.factor)), max(1, -(-rows // self.factor)))
+
+    def down(self, image: np.ndarray) -> np.ndarray:
+        if self.factor > 1:
+            image = cv2.resize(image, self.small, interpolation=cv2.INTER_AREA)
+        return cv2.GaussianBlur(image, (0, 0), self.window)
+
+    def up(self, image: np.ndarray) -> np.ndarray:
+        image = cv2.GaussianBlur(image, (0, 0), self.window)
+        if self.factor > 1:
+            image = cv2.resize(image, self.shape[::-1], interpolation=cv2.INTER_LINEAR)
+        return image
 
 
 def keep_end_detail(result, frame, weight, noise) -> float:
@@ -349,11 +389,11 @@ def keep_end_detail(result, frame, weight, noise) -> float:
     end frame's check), the end-frames scene lost 0.46 dB: the frame's cut at the planes'
     edge, which the truth does not have.
     """
-    w = np.where(weight >= BLEND_FLOOR, weight, 0.0).astype(np.float32)  # others stay
+    w = cv2.threshold(np.asarray(weight, np.float32), BLEND_FLOOR, 0, cv2.THRESH_TOZERO)[1]
     image, own = _grey(result), _grey(np.asarray(frame, np.float32))
     # one common scale: nothing changes, and squares of frames in other units (1e38:
     # tests/test_ingestion.py) cannot overflow float32
-    scale = max(float(np.max(np.abs(image))), float(np.max(np.abs(own))), 1e-30)
+    scale = max(*(abs(v) for x in (image, own) for v in cv2.minMaxLoc(x)[:2]), 1e-30)
     image, own, noise = image / np.float32(scale), own / np.float32(scale), noise / scale
     added = np.zeros_like(image)
     most = np.zeros(w.shape, np.float32)
@@ -364,15 +404,16 @@ def keep_end_detail(result, frame, weight, noise) -> float:
         band_image = cv2.subtract(fine_image, coarse_image)
         band_own = cv2.subtract(fine_own, coarse_own)
         window = max(2.0, DETAIL_WINDOW * sigma)
-        energy_image = cv2.GaussianBlur(cv2.pow(band_image, 2), (0, 0), window)
-        shown = cv2.GaussianBlur(cv2.pow(band_own, 2), (0, 0), window)
+        smooth = _Smooth(window, image.shape)
+        energy_image = smooth.down(cv2.pow(band_image, 2))
+        shown = smooth.down(cv2.pow(band_own, 2))
         shown -= np.float32(DETAIL_NOISE * noise * noise * _band_noise_gain(fine_px, sigma))
         # DETAIL_GAIN (1 - E_result / E_shown), clipped to [0, 1]; 0 where E_shown <= 0
         take = cv2.divide(energy_image, np.maximum(shown, np.float32(1e-30)))
         np.subtract(np.float32(1.0), take, out=take)
         np.multiply(take, np.float32(DETAIL_GAIN) * (shown > 0), out=take)
         np.clip(take, 0.0, 1.0, out=take)
-        take = cv2.GaussianBlur(take, (0, 0), window)
+        take = smooth.up(take)
         take *= w
         added += cv2.multiply(take, cv2.subtract(band_own, band_image))
         np.maximum(most, take, out=most)
