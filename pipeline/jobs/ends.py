@@ -13,7 +13,9 @@ average is deconvolved again with the kernel of that depth
 (:func:`pipeline.core.stack_kernel.depth_kernel`) and the difference to the stack
 kernel's result is added where that end frame is the sharpest (the map of the aligned
 previews, smoothed), at a reduced resolution (:func:`_reduced_correction`), and where
-the end frame itself shows what it adds (:func:`_frame_agreement`).
+the end frame itself shows what it adds (:func:`_frame_agreement`). Where the result there
+is still softer than the end frame (content further beyond the end than the one depth fitted
+for it), the frame's own 2-8 px detail is kept (:func:`keep_end_detail`).
 
 Measured (``tests/test_end_depths.py``, ``tests/benchmarks/synthetic_guard.py``): a
 three-plane stack whose far plane lies beyond the frames' range goes from 25.98 to
@@ -24,9 +26,10 @@ only) to 27.43 dB with the ends' own depths and the fit kept off depth edges, an
 29.65 dB with the end frame's check: without it, across an occlusion edge the end's
 kernel restored one side and rang into the other (16 px strips along the edges: 22.40
 dB, 25.4 dB with the check). On the real stacks the regions as good as focus-stack went
-from 0/8/4/7 to 2/8/7/8 with the correction beyond the ends, and are 2/8/7/7 with the
-ends' own depths, the fit kept off depth edges and the end frame's check
-(``tests/benchmarks/results/real_regions/NOTE.md``, stops 27 and 28).
+from 0/8/4/7 to 2/8/7/8 with the correction beyond the ends, were 2/8/7/7 with the
+ends' own depths, the fit kept off depth edges and the end frame's check, and are 2/8/9/7
+with the end frames' own detail (``tests/benchmarks/results/real_regions/NOTE.md``, stops
+27-29).
 """
 
 from __future__ import annotations
