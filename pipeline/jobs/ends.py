@@ -247,9 +247,9 @@ def restore_ends(
     kernel adds to deconvolving it with ``stack_kernel`` (:func:`_reduced_correction`, at a
     reduced resolution for frames of ``CORRECTION_SIDE_PX`` and more). Then, with
     ``read_frame(i, box)`` (that ``(rows, columns)`` box of frame ``i`` aligned at full
-    resolution, and where the frame covers it), keep there the end frame's own detail
-    (:func:`keep_end_detail`), except where a frame is ``clipped``. Returns, per end, what
-    the sidecar records."""
+    resolution, in colour or as its :func:`mean_grey`, and where the frame covers it),
+    keep there the end frame's own detail (:func:`keep_end_detail`), except where a frame
+    is ``clipped``. Returns, per end, what the sidecar records."""
     shape = result.shape[:2]
     factor = correction_factor(shape)
     report, blends = [], []
@@ -283,7 +283,7 @@ def restore_ends(
             weight = blend[box] * covered
             if clipped is not None:
                 weight *= ~clipped[box]
-            noise = float(frame_noise(_grey(frame), covered)[0])  # the grey bands' noise
+            noise = float(frame_noise(mean_grey(frame), covered)[0])
             share = keep_end_detail(result[box], frame, weight, noise)
             report[i]["detail_kept"] = round(share, 4)
 
@@ -328,7 +328,9 @@ def _band_noise_gain(fine_px: float, coarse_px: float) -> float:
 _MEAN = np.full((1, 3), 1 / 3, np.float32)
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
+def mean_grey(image: np.ndarray) -> np.ndarray:
+    """The mean of ``image``'s channels (itself if it has none): the grey image whose bands
+    :func:`keep_end_detail` compares."""
     return cv2.transform(image, _MEAN) if image.ndim == 3 else image
 
 
@@ -337,8 +339,8 @@ class _Smooth:
     resolution (``window_px / 2`` times coarser): what it smooths varies over the window
     and more, so the reduction changes it little (the local energies of pcb7's last frame:
     by 1.4% at the median, 6% at the 90th percentile) for a quarter to a sixteenth of the
-    work. ``down`` smooths and reduces, ``up`` smooths the
-    reduced image and brings it back to ``shape``."""
+    work. ``down`` smooths and reduces, ``up`` smooths the reduced image and brings it
+    back to ``shape``."""
 
     def __init__(self, window_px: float, shape):
         self.factor = max(1, int(window_px // 2))
@@ -393,7 +395,7 @@ def keep_end_detail(result, frame, weight, noise) -> float:
     edge, which the truth does not have.
     """
     w = cv2.threshold(np.asarray(weight, np.float32), BLEND_FLOOR, 0, cv2.THRESH_TOZERO)[1]
-    image, own = _grey(result), _grey(np.asarray(frame, np.float32))
+    image, own = mean_grey(result), mean_grey(np.asarray(frame, np.float32))
     # one common scale: nothing changes, and squares of frames in other units (1e38:
     # tests/test_ingestion.py) cannot overflow float32
     scale = max(*(abs(v) for x in (image, own) for v in cv2.minMaxLoc(x)[:2]), 1e-30)

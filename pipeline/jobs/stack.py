@@ -41,7 +41,13 @@ from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_frame, read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
-from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
+from pipeline.jobs.ends import (
+    correction_factor,
+    end_kernels,
+    mean_grey,
+    reduced_size,
+    restore_ends,
+)
 from pipeline.jobs.multiframe import restore_multiframe
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import (
@@ -258,12 +264,12 @@ def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
 
 
 def _aligned_frame(aligned: AlignedStack, index: int, box) -> tuple[np.ndarray, np.ndarray]:
-    """The ``box`` (rows, columns) of frame ``index`` aligned at full resolution (bicubic:
-    its fine detail is used as it is, :func:`pipeline.jobs.ends.keep_end_detail`), and
-    where the frame covers it."""
+    """The ``box`` (rows, columns) of frame ``index``, grey (:func:`mean_grey`: all that
+    :func:`pipeline.jobs.ends.keep_end_detail` reads), aligned at full resolution (bicubic:
+    its fine detail is used as it is), and where the frame covers it."""
     rows, cols = box
     shift = np.array([[1.0, 0.0, -cols.start], [0.0, 1.0, -rows.start], [0.0, 0.0, 1.0]])
-    frame = read_frame(aligned.stack.files[index], white=aligned.stack.white)
+    frame = mean_grey(read_frame(aligned.stack.files[index], white=aligned.stack.white))
     image, coverage = align.warp(
         frame,
         shift @ aligned.alignments[index].homography,
