@@ -34,7 +34,7 @@ def test_a_translation_warps_each_frame_before_weighting(tmp_path):
     shifts = [(0, 0), (2, 1), (1, 3)]  # (rows, cols) moved down/right on the reference
     homographies = [np.array([[1.0, 0, dc], [0, 1.0, dr], [0, 0, 1]]) for dr, dc in shifts]
     weights = [0.5, 0.2, 0.3]
-    total, _, _, _ = dask.compute(
+    total, _, _, _, _ = dask.compute(
         weighted_sum_graph(paths, homographies, weights, shape), scheduler="sync"
     )[0]
     ref = np.zeros(shape)
@@ -48,7 +48,7 @@ def test_per_row_weights_on_colour_frames(tmp_path):
     shape = (7, 4)
     paths, frames = _write(tmp_path, [rng.uniform(0.0, 0.9, (*shape, 3)) for _ in range(3)])
     rows = rng.uniform(0.0, 1.0, (3, shape[0]))
-    total, _, _, _ = dask.compute(
+    total, _, _, _, _ = dask.compute(
         weighted_sum_graph(paths, [None] * 3, list(rows), shape), scheduler="sync"
     )[0]
     ref = np.zeros((*shape, 3))
@@ -64,7 +64,7 @@ def test_decode_seconds_are_summed_over_the_frames_read(tmp_path, monkeypatch):
     rng = np.random.default_rng(9)
     paths, _ = _write(tmp_path, [rng.uniform(0.0, 0.9, (5, 6)) for _ in range(6)])
     weights = [0.1, 0.0, 0.2, 0.3, 0.1, 0.3]  # frame 1 is never read
-    _, _, read_s, _ = dask.compute(
+    _, _, read_s, _, _ = dask.compute(
         weighted_sum_graph(paths, [None] * 6, weights, (5, 6)), scheduler="sync"
     )[0]
     assert read_s == 5.0  # one tick per read, five frames read
@@ -97,8 +97,31 @@ def test_a_frame_listed_twice_counts_twice(tmp_path):
     rng = np.random.default_rng(10)
     paths, (p, q) = _write(tmp_path, [rng.uniform(0.0, 0.9, (4, 5)) for _ in range(2)])
     for scheduler in ("sync", "threads"):
-        total, _, _, _ = dask.compute(
+        total, _, _, _, _ = dask.compute(
             weighted_sum_graph([paths[0], paths[1]] * 2, [None] * 4, [0.5, 0.25] * 2, (4, 5)),
             scheduler=scheduler,
         )[0]
         np.testing.assert_allclose(total, p + 0.5 * q, rtol=1e-6)
+
+
+@pytest.mark.parametrize("scheduler", ["sync", "threads"])
+def test_kept_frames_are_the_grey_frames_as_read(tmp_path, scheduler):
+    """The end frames' detail reads the accumulation's copies instead of decoding again:
+    each kept frame is the mean of its channels as read (not warped, not weighted), for the
+    indices asked for only, and none for a frame of weight 0 (never read)."""
+    rng = np.random.default_rng(12)
+    colour = [rng.uniform(0.0, 0.9, (6, 7, 3)) for _ in range(4)]
+    paths, decoded = _write(tmp_path, colour)
+    shift = np.array([[1.0, 0, 2.0], [0, 1.0, 1.0], [0, 0, 1]])  # a warp the copies skip
+    total, _, _, _, kept = dask.compute(
+        weighted_sum_graph(paths, [shift] * 4, [0.4, 0.0, 0.3, 0.3], (6, 7), keep=(0, 1, 3)),
+        scheduler=scheduler,
+    )[0]
+    assert sorted(kept) == [0, 3]  # 1 has weight 0, 2 was not asked for
+    for i in (0, 3):
+        assert kept[i].dtype == np.float32 and kept[i].shape == (6, 7)
+        np.testing.assert_allclose(kept[i], decoded[i].mean(axis=2), rtol=1e-6, atol=1e-7)
+    assert total.shape == (6, 7, 3)
+    plain = dask.compute(weighted_sum_graph(paths, [shift] * 4, [0.4, 0.0, 0.3, 0.3], (6, 7)))
+    np.testing.assert_array_equal(total, plain[0][0])  # keeping changes nothing of the sum
+    assert plain[0][4] == {}

@@ -1,4 +1,5 @@
-"""The sRGB transfer function (IEC 61966-2-1), both ways, in float32 or float64.
+"""The sRGB transfer function (IEC 61966-2-1), both ways, in float32 or float64; the grey
+image of a colour one.
 """
 
 from __future__ import annotations
@@ -47,3 +48,13 @@ def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     low = lin <= 0.0031308
     out[low] = dtype.type(12.92) * lin[low]
     return out
+
+
+_MEAN = np.full((1, 3), 1 / 3, np.float32)
+
+
+def mean_grey(image: np.ndarray) -> np.ndarray:
+    """The mean of a ``(rows, cols, 3)`` image's channels (a ``(rows, cols)`` image is
+    returned as it is): the grey image whose bands the end frames' detail compares
+    (:func:`pipeline.jobs.ends.keep_end_detail`). float32 in, float32 out."""
+    return cv2.transform(image, _MEAN) if image.ndim == 3 else image

@@ -224,6 +224,13 @@ def _near_other_depths(sharpest, textured, x, end, others, span_px: float) -> np
     return near
 
 
+def end_pair(positions) -> tuple[int, int]:
+    """The first and the last frame in focus position: the ends :func:`end_depths` fits
+    (the same frame twice for a single one)."""
+    order = np.argsort(np.asarray(positions, dtype=np.float64), kind="stable")
+    return int(order[0]), int(order[-1])
+
+
 def end_frames(positions) -> list[int]:
     """The frames :func:`end_depths` reads when given the stack's :class:`FocusMaps`: the
     first and last frame in focus position and the three next to each."""

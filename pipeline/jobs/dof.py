@@ -233,7 +233,7 @@ def process_dof(
             "(focus_distance_mm or image_distance_mm in stack.toml)"
         )
     w = frame_weights(target, lens, aligned.positions, aligned.shape[0])
-    image, _, _ = accumulate(aligned, w, options, progress=progress)
+    image = accumulate(aligned, w, options, progress=progress)[0]
     sidecar = stack_sidecar(aligned, w, f"dof-{target.kind}", options)
     sidecar["dof"] = {
         "target": target.kind,

@@ -44,6 +44,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from pipeline.core import defocus, spectra
+from pipeline.core.colour import mean_grey
 from pipeline.core.frame_support import frame_noise
 from pipeline.core.stack_kernel import depth_kernel, frame_kernels
 from pipeline.errors import InputError
@@ -323,15 +324,6 @@ def _band_noise_gain(fine_px: float, coarse_px: float) -> float:
     impulse[side // 2, side // 2] = 1.0
     fine = impulse if fine_px == 0 else cv2.GaussianBlur(impulse, (0, 0), fine_px)
     return float(np.sum(np.square(fine - cv2.GaussianBlur(impulse, (0, 0), coarse_px))))
-
-
-_MEAN = np.full((1, 3), 1 / 3, np.float32)
-
-
-def mean_grey(image: np.ndarray) -> np.ndarray:
-    """The mean of ``image``'s channels (itself if it has none): the grey image whose bands
-    :func:`keep_end_detail` compares."""
-    return cv2.transform(image, _MEAN) if image.ndim == 3 else image
 
 
 class _Smooth:

@@ -26,6 +26,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus, multiframe
+from pipeline.core.colour import mean_grey
 from pipeline.core.frame_support import (
     FrameSupport,
     clip_to_frames,
@@ -41,13 +42,7 @@ from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_frame, read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
-from pipeline.jobs.ends import (
-    correction_factor,
-    end_kernels,
-    mean_grey,
-    reduced_size,
-    restore_ends,
-)
+from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
 from pipeline.jobs.multiframe import restore_multiframe
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import (
@@ -263,13 +258,17 @@ def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
     return _aligned_at(preview, aligned.alignments[index], aligned.shape, size)
 
 
-def _aligned_frame(aligned: AlignedStack, index: int, box) -> tuple[np.ndarray, np.ndarray]:
+def _aligned_frame(aligned: AlignedStack, index: int, box, kept) -> tuple[np.ndarray, np.ndarray]:
     """The ``box`` (rows, columns) of frame ``index``, grey (:func:`mean_grey`: all that
     :func:`pipeline.jobs.ends.keep_end_detail` reads), aligned at full resolution (bicubic:
-    its fine detail is used as it is), and where the frame covers it."""
+    its fine detail is used as it is), and where the frame covers it. The grey frame comes
+    from ``kept`` (the accumulation's, :func:`accumulate`), else it is read again (a frame
+    of weight 0, which the accumulation skips)."""
     rows, cols = box
     shift = np.array([[1.0, 0.0, -cols.start], [0.0, 1.0, -rows.start], [0.0, 0.0, 1.0]])
-    frame = mean_grey(read_frame(aligned.stack.files[index], white=aligned.stack.white))
+    frame = kept.get(index)
+    if frame is None:
+        frame = mean_grey(read_frame(aligned.stack.files[index], white=aligned.stack.white))
     image, coverage = align.warp(
         frame,
         shift @ aligned.alignments[index].homography,
@@ -384,10 +383,12 @@ def accumulate(
     *,
     progress: Progress = _no_progress,
     support: str | None = None,
-) -> tuple[np.ndarray, np.ndarray, FrameSupport | None]:
+    keep=(),
+) -> tuple[np.ndarray, np.ndarray, FrameSupport | None, dict]:
     """``sum_i w_i warp(frame_i)`` streamed through dask, the pixels clipped in any frame
     and, with ``support``, the frames' per-pixel range (``"range"``), or also their
-    sharpest frame and noise (``"full"``).
+    sharpest frame and noise (``"full"``); the grey images of the frames in ``keep``, as
+    read (:func:`pipeline.parallel.accumulate.weighted_sum_graph`).
 
     ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
     """
@@ -400,15 +401,16 @@ def accumulate(
         aligned.shape,
         support=support,
         white=aligned.stack.white,
+        keep=keep,
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
     with _TaskProgress("_add_frame", lambda done: progress("accumulate", done, used)):
-        ((average, clipped, read_s, frames),) = dask.compute(graph)
+        ((average, clipped, read_s, frames, kept),) = dask.compute(graph)
     progress("accumulate", used, used)
     aligned.timings["accumulate"] = time.perf_counter() - t0
     aligned.timings["read"] = read_s  # full-resolution decoding, summed over worker threads
-    return average, clipped, frames
+    return average, clipped, frames, kept
 
 
 def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, options) -> dict:
@@ -551,8 +553,13 @@ def process_stack(
             options.frame_guard,
             ends=end_previews,
         )
-        average, clipped, frames = accumulate(
-            aligned, weights, options, progress=progress, support=_support(options)
+        average, clipped, frames, kept = accumulate(
+            aligned,
+            weights,
+            options,
+            progress=progress,
+            support=_support(options),
+            keep=defocus.end_pair(aligned.positions) if want_ends else (),
         )
         kernel, kernel_samples, kernel_summary, beyond = kernel_job.result()
     check_white(stack, average)
@@ -588,7 +595,7 @@ def process_stack(
             average,
             beyond,
             kernel,
-            read_frame=lambda i, box: _aligned_frame(aligned, i, box),
+            read_frame=lambda i, box: _aligned_frame(aligned, i, box, kept),
             clipped=clipped,
         )
         for end in ends:

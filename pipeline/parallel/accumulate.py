@@ -14,6 +14,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align
+from pipeline.core.colour import mean_grey
 from pipeline.core.frame_support import FrameSupport
 from pipeline.io.read import read_frame
 
@@ -25,17 +26,22 @@ LANES = 2
 
 
 # ----------------------------------------------------------------------------- frame leaves
-def _warped_leaf(path: str, homography, weight, shape, support: str | None = None, white=None):
+def _warped_leaf(
+    path: str, homography, weight, shape, support: str | None = None, white=None, key=None
+):
     """Read one frame (with white level ``white``, :func:`pipeline.io.read.read_frame`),
     warp it onto the reference, weight it; its clipped pixels; decode time; with
     ``support`` (``"range"`` or ``"full"``), its
-    :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``).
+    :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``); with a ``key``,
+    ``{key: its grey image}`` (:func:`~pipeline.core.colour.mean_grey`, as read: not
+    warped), else ``{}``.
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
     """
     t0 = time.perf_counter()
     frame = read_frame(path, white=white)
     read_s = time.perf_counter() - t0
+    kept = {} if key is None else {key: np.array(mean_grey(frame), np.float32)}
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
@@ -44,21 +50,21 @@ def _warped_leaf(path: str, homography, weight, shape, support: str | None = Non
         frame *= np.float32(weight)
     else:
         frame *= np.asarray(weight, np.float32).reshape((-1,) + (1,) * (frame.ndim - 1))
-    return frame, clipped, read_s, stats
+    return frame, clipped, read_s, stats, kept
 
 
 def _merge(a, b):
     """Sum two partial weighted sums (in place), OR their clipped masks, add decode times,
-    merge their frame statistics."""
+    merge their frame statistics and kept grey frames."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one step: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    return a[0], a[1], a[2] + b[2], None if a[3] is None else a[3].merge(b[3])
+    return a[0], a[1], a[2] + b[2], None if a[3] is None else a[3].merge(b[3]), a[4] | b[4]
 
 
-def _add_frame(partial, path: str, homography, weight, shape, support=None, white=None):
+def _add_frame(partial, path: str, homography, weight, shape, support=None, white=None, key=None):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
-    leaf = _warped_leaf(path, homography, weight, shape, support, white)
+    leaf = _warped_leaf(path, homography, weight, shape, support, white, key)
     return leaf if partial is None else _merge(partial, leaf)
 
 
@@ -71,6 +77,7 @@ def weighted_sum_graph(
     lanes: int = LANES,
     support: str | None = None,
     white: float | None = None,
+    keep=(),
 ):
     """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
 
@@ -81,26 +88,29 @@ def weighted_sum_graph(
     140 MiB more at 28 frames of 3 Mpx than at 7) while ``lanes`` workers decode
     side by side. The result's bits depend on ``lanes`` (the float32 summation
     order), not on the scheduler or its threads. Returns a Delayed yielding
-    ``(sum, clipped_any_frame, decode_seconds, support)``; ``support`` is the read
+    ``(sum, clipped_any_frame, decode_seconds, support, kept)``; ``support`` is the read
     frames' :class:`~pipeline.core.frame_support.FrameSupport` when asked for (``"range"``:
-    their per-pixel range only; ``"full"``: all of it), else ``None``. ``white``: the
-    frames' white level (:func:`pipeline.io.read.read_frame`).
+    their per-pixel range only; ``"full"``: all of it), else ``None``; ``kept`` maps each
+    index in ``keep`` whose frame is read to that frame's grey image as read (not warped;
+    :func:`~pipeline.core.colour.mean_grey`), so the end frames' detail needs no second
+    decode. ``white``: the frames' white level (:func:`pipeline.io.read.read_frame`).
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")
+    keep = {int(i) for i in keep}
     used = [
-        (str(path), h, float(w) if np.ndim(w) == 0 else np.asarray(w))
-        for path, h, w in zip(files, homographies, weights)
+        (str(path), h, float(w) if np.ndim(w) == 0 else np.asarray(w), i if i in keep else None)
+        for i, (path, h, w) in enumerate(zip(files, homographies, weights))
         if np.max(w) > 0
     ]
     level = []
     for lane in range(min(int(lanes), len(used))):
         partial = None
-        for path, h, w in used[lane :: int(lanes)]:
+        for path, h, w, key in used[lane :: int(lanes)]:
             # pure=False: equal steps (a frame listed twice, first in two lanes) stay separate
             # tasks; a shared one would be added into, in place, by two later steps
             partial = dask.delayed(_add_frame, pure=False)(
-                partial, path, h, w, tuple(shape), support, white
+                partial, path, h, w, tuple(shape), support, white, key
             )
         level.append(partial)
     while len(level) > 1:
