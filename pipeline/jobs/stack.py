@@ -26,7 +26,6 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus, multiframe
-from pipeline.core.colour import mean_grey
 from pipeline.core.frame_support import (
     FrameSupport,
     clip_to_frames,
@@ -40,7 +39,7 @@ from pipeline.core.weights import constant_speed_weights
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
-from pipeline.io.read import read_frame, read_preview
+from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
 from pipeline.jobs.multiframe import restore_multiframe
@@ -259,16 +258,14 @@ def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
 
 
 def _aligned_frame(aligned: AlignedStack, index: int, box, kept) -> tuple[np.ndarray, np.ndarray]:
-    """The ``box`` (rows, columns) of frame ``index``, grey (:func:`mean_grey`: all that
+    """The ``box`` (rows, columns) of frame ``index``, grey (``mean_grey``: all that
     :func:`pipeline.jobs.ends.keep_end_detail` reads), aligned at full resolution (bicubic:
-    its fine detail is used as it is), and where the frame covers it. The grey frame comes
-    from ``kept`` (the accumulation's, :func:`accumulate`), else it is read again (a frame
-    of weight 0, which the accumulation skips)."""
+    its fine detail is used as it is), and where the frame covers it. The grey frame is the
+    accumulation's copy (:func:`accumulate`'s ``keep``: an end frame always has a weight,
+    so it is always read there)."""
     rows, cols = box
     shift = np.array([[1.0, 0.0, -cols.start], [0.0, 1.0, -rows.start], [0.0, 0.0, 1.0]])
-    frame = kept.get(index)
-    if frame is None:
-        frame = mean_grey(read_frame(aligned.stack.files[index], white=aligned.stack.white))
+    frame = kept[index]
     image, coverage = align.warp(
         frame,
         shift @ aligned.alignments[index].homography,
