@@ -11,6 +11,9 @@ Scenes:
   0.02, the lens and focus positions known (the kernel from the lens);
 * ``3 planes, no lens``: the same at sigma 0.01 with the lens removed from stack.toml, so
   the blur span is fitted (and, with the guard, doubled);
+* ``3 planes, plain folder``: the same with no stack.toml at all (no lens, no positions:
+  the frames' order stands for them, and the alignment check decides whether the
+  magnification ECC reads is real);
 * ``3 planes, far plane beyond the frames``: sigma 0.01, frames focused from 450 to 1200 mm
   only, so the 1600 mm plane is in focus in none (Sec. 4.1; ``pipeline.jobs.ends``);
 * ``3 planes, end frames on the near and far planes``: sigma 0.01, frames focused from 500
@@ -169,6 +172,11 @@ def main() -> None:
         folder.mkdir()
         truth, frames = planes(folder, 0.01, lens=False)
         lines += evaluate("3 planes, sigma 0.01, no lens", folder, truth, frames, None)
+        folder = Path(tmp) / "plain"
+        folder.mkdir()
+        truth, frames = planes(folder, 0.01, lens=True)
+        (folder / "stack.toml").unlink()
+        lines += evaluate("3 planes, sigma 0.01, plain folder", folder, truth, frames, None)
         folder = Path(tmp) / "beyond"
         folder.mkdir()
         truth, frames = planes(folder, 0.01, lens=True, far_mm=1200.0)
