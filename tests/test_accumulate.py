@@ -105,23 +105,28 @@ def test_a_frame_listed_twice_counts_twice(tmp_path):
 
 
 @pytest.mark.parametrize("scheduler", ["sync", "threads"])
-def test_kept_frames_are_the_grey_frames_as_read(tmp_path, scheduler):
+@pytest.mark.parametrize("warped", [True, False])
+@pytest.mark.parametrize("channels", [3, 1])
+def test_kept_frames_are_the_grey_frames_as_read(tmp_path, scheduler, warped, channels):
     """The end frames' detail reads the accumulation's copies instead of decoding again:
-    each kept frame is the mean of its channels as read (not warped, not weighted), for the
-    indices asked for only, and none for a frame of weight 0 (never read)."""
+    each kept frame is the mean of its channels as read (not warped, not weighted: without a
+    warp the frame is weighted in place), for the indices asked for only, and none for a
+    frame of weight 0 (never read)."""
     rng = np.random.default_rng(12)
-    colour = [rng.uniform(0.0, 0.9, (6, 7, 3)) for _ in range(4)]
-    paths, decoded = _write(tmp_path, colour)
+    size = (6, 7, 3) if channels == 3 else (6, 7)
+    paths, decoded = _write(tmp_path, [rng.uniform(0.0, 0.9, size) for _ in range(4)])
     shift = np.array([[1.0, 0, 2.0], [0, 1.0, 1.0], [0, 0, 1]])  # a warp the copies skip
+    homographies = [shift if warped else None] * 4
     total, _, _, _, kept = dask.compute(
-        weighted_sum_graph(paths, [shift] * 4, [0.4, 0.0, 0.3, 0.3], (6, 7), keep=(0, 1, 3)),
+        weighted_sum_graph(paths, homographies, [0.4, 0.0, 0.3, 0.3], (6, 7), keep=(0, 1, 3)),
         scheduler=scheduler,
     )[0]
     assert sorted(kept) == [0, 3]  # 1 has weight 0, 2 was not asked for
     for i in (0, 3):
         assert kept[i].dtype == np.float32 and kept[i].shape == (6, 7)
-        np.testing.assert_allclose(kept[i], decoded[i].mean(axis=2), rtol=1e-6, atol=1e-7)
-    assert total.shape == (6, 7, 3)
-    plain = dask.compute(weighted_sum_graph(paths, [shift] * 4, [0.4, 0.0, 0.3, 0.3], (6, 7)))
+        grey = decoded[i].mean(axis=2) if channels == 3 else decoded[i]
+        np.testing.assert_allclose(kept[i], grey, rtol=1e-6, atol=1e-7)
+    assert total.shape == size
+    plain = dask.compute(weighted_sum_graph(paths, homographies, [0.4, 0.0, 0.3, 0.3], (6, 7)))
     np.testing.assert_array_equal(total, plain[0][0])  # keeping changes nothing of the sum
     assert plain[0][4] == {}
