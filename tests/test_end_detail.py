@@ -14,6 +14,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 
 from pipeline.core import align
+from pipeline.core.colour import mean_grey
 from pipeline.io.read import read_frame
 from pipeline.jobs.ends import keep_end_detail, restore_ends
 from pipeline.jobs.stack import process_stack
@@ -191,3 +192,16 @@ def test_a_slightly_misaligned_frame_still_helps(shift_px, gain):
     inner = np.s_[16:-16, 16:-16]
     error = float(np.abs(out - seen)[inner].mean())
     assert error < gain * float(np.abs(result - seen)[inner].mean())
+
+
+@pytest.mark.parametrize("channels", [None, 1, 3, 4])
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_mean_grey_is_the_channels_mean_for_any_channel_count(channels, dtype):
+    """Against numpy's mean (the end correction's check passes a single channel axis; the
+    3-channel path runs through cv2.transform)."""
+    shape = (5, 7) if channels is None else (5, 7, channels)
+    image = np.random.default_rng(3).uniform(-0.2, 1.3, shape).astype(dtype)
+    grey = mean_grey(image)
+    want = image if channels is None else image.astype(np.float64).mean(axis=2)
+    assert grey.shape == (5, 7) and grey.dtype == dtype
+    np.testing.assert_allclose(grey, want, rtol=1e-6, atol=1e-7)

@@ -54,7 +54,13 @@ _MEAN = np.full((1, 3), 1 / 3, np.float32)
 
 
 def mean_grey(image: np.ndarray) -> np.ndarray:
-    """The mean of a ``(rows, cols, 3)`` image's channels (a ``(rows, cols)`` image is
-    returned as it is): the grey image whose bands the end frames' detail compares
-    (:func:`pipeline.jobs.ends.keep_end_detail`). float32 in, float32 out."""
-    return cv2.transform(image, _MEAN) if image.ndim == 3 else image
+    """The mean of a ``(rows, cols, channels)`` image's channels (a ``(rows, cols)`` image
+    is returned as it is): the grey image whose bands the end frames' detail compares
+    (:func:`pipeline.jobs.ends.keep_end_detail`), the edge measure
+    (:mod:`pipeline.core.quality`) and the end correction's check. float32 or float64 in,
+    the same out."""
+    if image.ndim == 2:
+        return image
+    if image.shape[2] == 3:
+        return cv2.transform(image, _MEAN)  # 1.6 ms for 2048x1536 (numpy's mean: 52 ms)
+    return image.mean(axis=2).astype(image.dtype, copy=False)  # e.g. a single channel axis

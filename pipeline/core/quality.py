@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from pipeline.core.colour import mean_grey
 from pipeline.errors import InputError
 
 
@@ -30,14 +31,9 @@ def psnr(image: np.ndarray, reference: np.ndarray, *, data_range: float = 1.0) -
     return float(10 * np.log10(data_range**2 / max(mse, 1e-30)))
 
 
-def _grey(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image, np.float32)
-    return image.mean(axis=-1) if image.ndim == 3 else image
-
-
 def edge_points(reference: np.ndarray, *, max_points: int = 6000, seed: int = 0):
     """Strong edges of ``reference``: positions (row, col) and unit normals, shape (n, 2) each."""
-    grey = _grey(reference)
+    grey = mean_grey(np.asarray(reference, np.float32))
     smooth = cv2.GaussianBlur(grey, (0, 0), 2.0)
     gy = cv2.Sobel(smooth, cv2.CV_32F, 0, 1, ksize=3)
     gx = cv2.Sobel(smooth, cv2.CV_32F, 1, 0, ksize=3)
@@ -68,7 +64,7 @@ def edge_widths(
     min_contrast: float = 0.02,
 ) -> np.ndarray:
     """10-90% rise width (px) of ``image`` at each edge point; NaN where too faint."""
-    grey = _grey(image)
+    grey = mean_grey(np.asarray(image, np.float32))
     t = np.arange(-reach_px, reach_px + 0.25, 0.25)
     coords = points[:, :, None] + normals[:, :, None] * t[None, None, :]
     profiles = ndimage.map_coordinates(grey, coords.transpose(1, 0, 2), order=1, mode="nearest")

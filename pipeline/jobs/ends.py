@@ -218,7 +218,7 @@ def _frame_agreement(result, delta, frame_image, frame_kernel) -> np.ndarray:
     """
     rows, cols = result.shape[:2]
     small = cv2.resize(result, frame_image.shape[::-1], interpolation=cv2.INTER_AREA)
-    r, d = (x.mean(axis=2) if x.ndim == 3 else x for x in (small, delta))
+    r, d = (mean_grey(x) for x in (small, delta))
     if frame_kernel.size > 1:
         k = frame_kernel.astype(np.float32)
         r, d = (cv2.filter2D(x, -1, k, borderType=cv2.BORDER_REFLECT) for x in (r, d))
@@ -355,10 +355,28 @@ class _Smooth:
 
 def keep_end_detail(result, frame, weight, noise) -> float:
     """Give ``result`` (in place), band by band, the end frame's detail where the frame
-    shows more of it, with ``weight`` (0..1 per pixel: where the end frame is the sharpest
-    and supports the correction, :func:`restore_ends`). Returns the share of the area
-    weighted over half where some band took over half of the frame's.
+    shows more of it (Sec. 4.1's end effect, left after :func:`_reduced_correction`).
 
+    Parameters
+    ----------
+    result : ndarray, float32, (rows, cols) or (rows, cols, 3)
+        The restored image (linear light), changed in place.
+    frame : ndarray, (rows, cols) or (rows, cols, 3)
+        The end frame, aligned to ``result`` (only its grey image is read).
+    weight : ndarray, (rows, cols)
+        0..1 per pixel: where the end frame is the sharpest and supports the correction
+        (:func:`restore_ends`); pixels below ``BLEND_FLOOR`` are left as they are.
+    noise : float
+        The std of the frame's grey image's noise (``result``'s units).
+
+    Returns
+    -------
+    float
+        The share of the area weighted over half where some band took over half of the
+        frame's.
+
+    Notes
+    -----
     Where an end frame's content lies beyond the focus range by more than the one depth
     fitted per end (:func:`pipeline.core.defocus.end_depths`: a median), the kernel of that
     depth under-restores it, and the result stays softer than the end frame itself

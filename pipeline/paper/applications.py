@@ -29,7 +29,7 @@ from skimage import data as skdata
 from skimage import registration, transform
 
 from pipeline.core import deconvolve, optics, quality, simulate
-from pipeline.core.colour import srgb_to_linear
+from pipeline.core.colour import mean_grey, srgb_to_linear
 from pipeline.core.lens import Lens
 from pipeline.core.motion import (
     plan_discontinuous_dof,
@@ -113,8 +113,7 @@ def texture(name: str, shape: tuple[int, int], *, tint=None, crop=None) -> np.nd
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image, dtype=np.float64)
-    return image.mean(axis=2) if image.ndim == 3 else image
+    return mean_grey(np.asarray(image, dtype=np.float64))
 
 
 def detail_transfer(
