@@ -107,6 +107,12 @@ def warp(image: np.ndarray, h: np.ndarray, shape) -> tuple[np.ndarray, np.ndarra
     return out, cover > 0.999
 
 
+def _psnr(image: np.ndarray, truth: np.ndarray, where: np.ndarray) -> float:
+    """PSNR (dB, peak 255) of ``image`` against ``truth`` over the pixels ``where``."""
+    mse = float(np.mean((image[where] - truth[where]) ** 2))
+    return float(10 * np.log10(255.0**2 / max(mse, 1e-12)))
+
+
 def to_u8(image: np.ndarray) -> np.ndarray:
     return np.clip(np.round(image), 0, 255).astype(np.uint8)
 
@@ -249,8 +255,16 @@ def crop_windows(
 
 # ----------------------------------------------------------------------------- one stack
 def evaluate(
-    name: str, pattern: str, result: Path, work: Path, out: Path, focus_stack: str | None = None
+    name: str,
+    pattern: str,
+    result: Path,
+    work: Path,
+    out: Path,
+    focus_stack: str | None = None,
+    extra: dict[str, Path] | None = None,
 ) -> dict:
+    """Scores, registration and crops of one stack; ``extra`` images (e.g. a ground truth)
+    are registered and scored like the peers, and shown as a fourth crop."""
     t0 = time.perf_counter()
     side = json.loads(Path(str(result) + ".json").read_text())
     flex = read_srgb(result)
@@ -273,6 +287,7 @@ def evaluate(
     peers = {
         "focus-stack": run_focus_stack(name, pattern, work, focus_stack),
         "enfuse": run_enfuse(name, pattern, work),
+        **(extra or {}),
     }
     for peer, path in peers.items():
         if path is None or not Path(path).exists():
@@ -290,6 +305,12 @@ def evaluate(
     # (a plain focus stacker)
     scores["frame composite"] = ref.measure(composite)
     scores = {m: {k: v.tolist() for k, v in s.items()} for m, s in scores.items()}
+    # PSNR (8-bit sRGB levels, common area) of every other image against each extra image
+    fidelity = {
+        k: {m: _psnr(img, methods[k], ref.valid) for m, img in methods.items() if m != k}
+        for k in (extra or {})
+        if k in methods
+    }
 
     # crops: flexdof | focus-stack | the region's sharpest frame
     peer = methods.get("focus-stack", flex)
@@ -297,11 +318,17 @@ def evaluate(
         flex, peer, ref.valid, ref.regions, min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
     )
     size = min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
+    more = [k for k in (extra or {}) if k in methods]
     names = ["flexdof", "focus-stack"]
     best = sharpest_in(frames, *corner, size)
     cv2.imwrite(
         str(out / f"{name}_maxdiff.png"),
-        triple([flex, peer, frames[best]], [*names, f"frame {best}"], *corner, size)[..., ::-1],
+        triple(
+            [flex, peer, frames[best], *(methods[k] for k in more)],
+            [*names, f"frame {best}", *more],
+            *corner,
+            size,
+        )[..., ::-1],
         PNG,
     )
     rows = []
@@ -313,8 +340,13 @@ def evaluate(
             best = sharpest_in(frames, y0, x0, size)
             row.append(
                 triple(
-                    [flex, peer, frames[best]],
-                    [f"{REGION_NAMES[r]}: flexdof", "focus-stack", f"sharpest frame here: {best}"],
+                    [flex, peer, frames[best], *(methods[k] for k in more)],
+                    [
+                        f"{REGION_NAMES[r]}: flexdof",
+                        "focus-stack",
+                        f"sharpest frame here: {best}",
+                        *more,
+                    ],
                     y0,
                     x0,
                     size,
@@ -333,6 +365,7 @@ def evaluate(
         "maxdiff_window": {"row": corner[0], "col": corner[1], "size": size},
         "region_windows": per_region,
         "scores": scores,
+        "psnr_against": fidelity,
         "seconds": time.perf_counter() - t0,
     }
 
@@ -344,14 +377,16 @@ def fmt(v: float, measure: str) -> str:
     return f"{v:.3f}" if measure == "haze" else f"{v:.2f}"
 
 
-def good_regions(scores: dict, against: str = "focus-stack") -> tuple[int, int]:
-    """Regions where flexdof is at least as good as ``against`` on every measure."""
+def good_regions(
+    scores: dict, against: str = "focus-stack", method: str = "flexdof"
+) -> tuple[int, int]:
+    """Regions where ``method`` is at least as good as ``against`` on every measure."""
     if against not in scores:
         return 0, 0
     ok = 0
     for r in range(GRID * GRID):
         verdicts = [
-            at_least_as_good(m, scores["flexdof"][m][r], scores[against][m][r]) for m in MEASURES
+            at_least_as_good(m, scores[method][m][r], scores[against][m][r]) for m in MEASURES
         ]
         ok += all(v is not False for v in verdicts)
     return ok, GRID * GRID
@@ -414,7 +449,15 @@ def report(results: dict, args) -> str:
         ]
         methods = [
             m
-            for m in ("flexdof", "focus-stack", "enfuse", "sharpest frame", "frame composite")
+            for m in (
+                "flexdof",
+                "multiframe",
+                "focus-stack",
+                "enfuse",
+                "truth",
+                "sharpest frame",
+                "frame composite",
+            )
             if m in s
         ]
         for m in MEASURES:
