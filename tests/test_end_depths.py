@@ -4,6 +4,8 @@ frames' own lens PSFs, and the main job's gain on a plane beyond the range."""
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -324,7 +326,8 @@ def test_a_scene_mostly_beyond_an_end_of_the_range_is_warned_about(
     tmp_path, shared_data, caplog
 ):
     """pcb10's frames 4-9: most of the board is sharpest in pcb10's frames 2-3, so the
-    near end frame is the sharpest over 87% of the image and the result stays softer than
+    near end frame is the sharpest over 85-95% of the image (90% on the fit's previews;
+    87% before they were warped ahead of their reduction) and the result stays softer than
     that frame; the user is told (and how to help it). All of pcb10: no warning."""
     import logging
 
@@ -338,7 +341,8 @@ def test_a_scene_mostly_beyond_an_end_of_the_range_is_warned_about(
         assert bool(messages) == warned, messages
         if warned:
             (message,) = messages
-            assert "pcb_004.JPG is the sharpest frame over 87%" in message
+            share = re.search(r"pcb_004\.JPG is the sharpest frame over (\d+)%", message)
+            assert share is not None and 85 <= int(share.group(1)) <= 95, message
             assert "--frame-guard" in message
 
 

@@ -33,14 +33,18 @@ def _focus_measure(grey: np.ndarray) -> np.ndarray:
 
 
 def _pairs(n: int) -> list[tuple[int, int]]:
-    """Frame pairs 2+ frames apart (neighbours only for tiny stacks).
+    """Frame pairs 2+ frames apart (neighbours only for tiny stacks); from five frames on
+    also 4 apart.
 
     A pixel's sharpest frame is itself blurred by up to ``D dx / 2`` (the point
     focuses between frames); blur adds roughly in quadrature, so predicting a frame
     ``k`` steps away underestimates ``D`` by about ``1 / (8 k^2)``: 12% for
-    neighbours, 3% for k = 2.
+    neighbours, 3% for k = 2. On stacks rendered with occlusion, breathing, shot noise
+    and 8-bit frames (tilted boards and the motorcycle, 5-9 frames,
+    ``tests/benchmarks/regions_vs_truth.py``) pairs 2 and 3 apart read the span 5-12%
+    low; with pairs 4 apart as well, -9% to +2% (issue 13).
     """
-    steps = {1, 2} if n < 4 else {2, 3, max(2, n // 3)}
+    steps = {1, 2} if n < 4 else {2, 3} if n < 5 else {2, 3, 4, max(2, n // 3)}
     return [(i, i + s * d) for i in range(n) for s in steps for d in (-1, 1) if 0 <= i + s * d < n]
 
 

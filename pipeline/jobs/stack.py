@@ -236,11 +236,22 @@ def _fit_preview(preview, alignment, full_shape) -> np.ndarray:
 
 
 def _aligned_at(preview, alignment, full_shape, size) -> np.ndarray:
-    """``preview`` reduced to ``size`` (cols, rows) and aligned by its full-resolution
-    homography."""
-    reduced = cv2.resize(preview, size, interpolation=cv2.INTER_AREA)
-    h = align.rescale_homography(alignment.homography, full_shape[:2], reduced.shape)
-    return align.warp(reduced, h, reduced.shape)
+    """``preview`` aligned by its full-resolution homography, then reduced to ``size``
+    (cols, rows).
+
+    The warp runs at the preview's own resolution, before the reduction. Bilinear
+    interpolation blurs a frame by up to half a pixel, by an amount that varies with the
+    frame's offset, and the defocus fits (:func:`pipeline.core.defocus.estimate_blur_span`,
+    :func:`~pipeline.core.defocus.end_depths`) compare the frames' blur at the reduced
+    size, where two frames a few steps apart may differ by a pixel or less. Warped after
+    the reduction, rendered stacks of a tilted board read blur spans 25-71% above the
+    truth (7.4 px on 768 px frames read as 12.7 px; issue 13,
+    ``tests/benchmarks/regions_vs_truth.py``), and a stack rendered by brute force and
+    magnified 0.3% per frame 55% above (``tests/test_defocus.py``); warped first, 5-18%
+    and 4%.
+    """
+    h = align.rescale_homography(alignment.homography, full_shape[:2], preview.shape[:2])
+    return cv2.resize(align.warp(preview, h, preview.shape), size, interpolation=cv2.INTER_AREA)
 
 
 def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarray], float]:
