@@ -13,15 +13,21 @@ same way. So the tables show, per region and measure, where the truth lies: a re
 beats the truth on haze shows more low-frequency contrast than the scene has.
 
 Scenes (``pipeline.simulate``: layered pillbox PSFs with occlusion, the lens's breathing,
-shot noise at 4000 e- per unit radiance and 3 e- read noise):
+shot noise at 4000 e- per unit radiance and 3 e- read noise; ``SCENES``):
 
 * ``board``: a tilted textured board (six skimage photographs in a 512x768 mosaic), 300 mm
   at the bottom to 420 mm at the top, with a raised block at 280 mm (beyond the near end);
   nine frames focused over 300-420 mm; the Sigma 30 mm f/1.4 profile with its pixels
-  scaled so that the range spans 56 px of blur; breathing moves the corners by 7 px;
-* ``board, ends beyond``: the same, frames focused over 320-400 mm only, so content lies
-  beyond both ends of the sweep (as in every real stack here);
+  scaled so that the range spans 11.3 px of blur; breathing moves the corners by 7 px;
+* ``board_ends``: the same, frames focused over 320-400 mm only, so content lies beyond
+  both ends of the sweep (as in every real stack here);
+* ``board_22px``, ``board_45px``: the first with two and four times the blur;
+* ``board_5frames``, ``board_6frames``, ``board_7frames``: shorter stacks (7.4, 18.7 and
+  29.8 px of blur, content beyond one or both ends);
 * ``motorcycle``: the shipped sample, its 16-bit frames rounded to 8 bits.
+
+The summary also gives the blur span ``flexdof stack`` fitted (the frames carry no focus
+positions) against the one the scene was rendered with.
 
 Writes ``DIR/regions_vs_truth.md`` (the summary, then ``real_stack_regions.py``'s tables
 with truth and multiframe columns) and crops flexdof | focus-stack | sharpest frame | truth |
@@ -54,15 +60,40 @@ from real_stack_regions import (  # noqa: E402
 from region_measures import MEASURES, verdict  # noqa: E402
 
 from pipeline.core import colour, optics, simulate  # noqa: E402
+from pipeline.core.lens import Lens  # noqa: E402
 from pipeline.core.scene import Exposure, Scene  # noqa: E402
 from pipeline.io import profiles  # noqa: E402
 from pipeline.io.read import read_frame  # noqa: E402
+from pipeline.io.stackfile import image_distances_mm, load_stack  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results" / "regions_vs_truth"
 EXPOSURE = Exposure(electrons_at_unit=4000.0, read_noise_e=3.0)
-FRAMES = 9
 PNG = [cv2.IMWRITE_PNG_COMPRESSION, 6]
 MULTIFRAME = ["--method", "multiframe"]  # the quality method, scored as one more image
+
+
+@dataclasses.dataclass(frozen=True)
+class Board:
+    """A tilted-board stack: ``frames`` frames focused from ``far_mm`` to ``near_mm``,
+    the lens's pixels ``pitch`` times the sensor's width per board column."""
+
+    pitch: float
+    frames: int
+    near_mm: float
+    far_mm: float
+
+
+# 300-420 mm spans 11.3 px of blur at pitch 2, 22.6 at 1, 45.2 at 0.5
+SCENES = {
+    "board": Board(2.0, 9, 300.0, 420.0),
+    "board_ends": Board(2.0, 9, 320.0, 400.0),
+    "board_22px": Board(1.0, 9, 300.0, 420.0),
+    "board_45px": Board(0.5, 9, 300.0, 420.0),
+    "board_5frames": Board(2.0, 5, 320.0, 400.0),
+    "board_6frames": Board(1.0, 6, 310.0, 410.0),
+    "board_7frames": Board(0.5, 7, 320.0, 400.0),
+    "motorcycle": None,  # the shipped sample
+}
 
 
 def board_radiance() -> np.ndarray:
@@ -81,29 +112,43 @@ def board_radiance() -> np.ndarray:
     return colour.srgb_to_linear(mosaic.astype(np.float32) / 255)
 
 
-def render_board(near_mm: float, far_mm: float) -> tuple[np.ndarray, np.ndarray]:
-    """Frames (linear, ``(FRAMES, 512, 768, 3)``) focused from ``far_mm`` to ``near_mm``,
-    and the truth (the scene at the mean position, as the simulator's frames are)."""
+def board_lens(board: Board, cols: int, rows: int) -> Lens:
+    """The Sigma 30 mm f/1.4 profile with pixels ``board.pitch`` x sensor width / cols."""
+    base = profiles.load_lens("sigma-30mm-f1.4-canon-eos-20d")
+    pitch = board.pitch * base.pixel_pitch_um * base.width_px / cols
+    return dataclasses.replace(base, pixel_pitch_um=pitch, width_px=cols, height_px=rows)
+
+
+def render_board(board: Board) -> tuple[np.ndarray, np.ndarray, float]:
+    """Frames (linear, ``(n, 512, 768, 3)``), the truth (the scene at the mean position,
+    as the simulator's frames are) and the true blur span (px)."""
     radiance = board_radiance()
     rows, cols = radiance.shape[:2]
-    base = profiles.load_lens("sigma-30mm-f1.4-canon-eos-20d")
-    # pixels twice the sensor's width / cols: the 300-420 mm range spans 56 px of blur
-    pitch = 2 * base.pixel_pitch_um * base.width_px / cols
-    lens = dataclasses.replace(base, pixel_pitch_um=pitch, width_px=cols, height_px=rows)
+    lens = board_lens(board, cols, rows)
     depth = 1 / np.linspace(1 / 420, 1 / 300, rows)[:, None] * np.ones((1, cols))
     depth[300:420, 300:480] = 280.0  # a raised block, nearer than the near end
-    v_far = optics.image_distance(lens.focal_length_mm, far_mm)
-    v_near = optics.image_distance(lens.focal_length_mm, near_mm)
+    v_far = optics.image_distance(lens.focal_length_mm, board.far_mm)
+    v_near = optics.image_distance(lens.focal_length_mm, board.near_mm)
     frames, _ = simulate.render_focal_stack(
         Scene.from_depth(radiance, depth),
         lens,
-        np.linspace(v_far, v_near, FRAMES),
+        np.linspace(v_far, v_near, board.frames),
         exposure_s=0.1,
         exposure=EXPOSURE,
         tolerance=1e-3,
         seed=2011,
     )
-    return frames, radiance
+    return frames, radiance, float(lens.blur_px(v_near, v_far))
+
+
+def motorcycle() -> tuple[list[np.ndarray], np.ndarray, float]:
+    """The shipped sample's frames, truth and true blur span (its lens and positions)."""
+    sample = TESTS.parent / "stacks" / "motorcycle"
+    stack = load_stack(sample)
+    positions = image_distances_mm(stack).image_distances_mm
+    span = float(stack.lens_profile.blur_px(positions.min(), positions.max()))
+    frames = [read_frame(p) for p in stack.files]
+    return frames, read_frame(sample / "ground_truth.tif"), span
 
 
 def write_srgb8(path: Path, linear: np.ndarray) -> None:
@@ -112,36 +157,37 @@ def write_srgb8(path: Path, linear: np.ndarray) -> None:
     cv2.imwrite(str(path), np.round(255 * encoded).astype(np.uint8)[..., ::-1], PNG)
 
 
-def prepare(name: str, work: Path) -> tuple[str, Path]:
-    """The scene's frames as 8-bit PNGs (a glob) and its truth, rendered once into ``work``."""
-    folder = work / name.replace(", ", "_").replace(" ", "_")
+def prepare(name: str, work: Path) -> tuple[str, Path, float]:
+    """The scene's frames as 8-bit PNGs (a glob), its truth and its true blur span,
+    rendered once into ``work``."""
+    folder = work / name
     truth = folder / "truth.png"
+    span_file = folder / "span_px.txt"
     pattern = str(folder / "frames" / "frame_*.png")
-    if truth.exists():
-        return pattern, truth
+    if truth.exists() and span_file.exists():
+        return pattern, truth, float(span_file.read_text())
     (folder / "frames").mkdir(parents=True, exist_ok=True)
-    if name == "motorcycle":
-        sample = TESTS.parent / "stacks" / "motorcycle"
-        frames = [read_frame(p) for p in sorted(sample.glob("frame_*.png"))]
-        sharp = read_frame(sample / "ground_truth.tif")
+    if SCENES[name] is None:
+        frames, sharp, span = motorcycle()
     else:
-        near, far = (300.0, 420.0) if name == "board" else (320.0, 400.0)
-        print(f"rendering {name} (about 40 s)", flush=True)
-        frames, sharp = render_board(near, far)
+        print(f"rendering {name} (about a minute)", flush=True)
+        frames, sharp, span = render_board(SCENES[name])
     for i, frame in enumerate(frames):
         write_srgb8(folder / "frames" / f"frame_{i:02d}.png", frame)
     write_srgb8(truth, sharp)
-    return pattern, truth
+    span_file.write_text(f"{span:.4f}\n")
+    return pattern, truth, span
 
 
 def summary(results: dict) -> list[str]:
-    """Per scene: regions flexdof and the truth are at least as good as focus-stack on all
-    four measures, the truth's losses to focus-stack per measure, and PSNR against the truth."""
+    """Per scene: the blur span fitted against the true one, regions flexdof and the truth
+    are at least as good as focus-stack on all four measures, the truth's losses to
+    focus-stack per measure, and PSNR against the truth."""
     lines = [
-        "| scene | regions >= focus-stack on all 4: flexdof | the truth | the truth's losses "
-        "to focus-stack (sharpness/halo/haze/noise) | PSNR against the truth: flexdof | "
-        "flexdof --method multiframe | focus-stack | enfuse |",
-        "|---|---|---|---|---|---|---|---|",
+        "| scene | blur span px: true | fitted | regions >= focus-stack on all 4: flexdof | "
+        "the truth | the truth's losses to focus-stack (sharpness/halo/haze/noise) | PSNR "
+        "against the truth: flexdof | flexdof --method multiframe | focus-stack | enfuse |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, res in results.items():
         s = res["scores"]
@@ -150,8 +196,10 @@ def summary(results: dict) -> list[str]:
             for m in MEASURES
         ]
         psnr = res["psnr_against"]["truth"]
+        true, fitted = res["true_span_px"], res["blur_span_px"]
         lines.append(
-            f"| {name} | {good_regions(s)[0]}/9 | {good_regions(s, method='truth')[0]}/9 | "
+            f"| {name} | {true:.1f} | {fitted:.1f} ({fitted / true - 1:+.0%}) | "
+            f"{good_regions(s)[0]}/9 | {good_regions(s, method='truth')[0]}/9 | "
             + "/".join(map(str, losses))
             + " | "
             + " | ".join(
@@ -172,25 +220,25 @@ def main() -> int:
         help="the focus-stack binary (bash ../shared/tools/build-focus-stack.sh)",
     )
     parser.add_argument("--flexdof-args", default="--threads 2")
-    parser.add_argument("--scenes", default="board,board_ends,motorcycle")
+    parser.add_argument("--scenes", default=",".join(SCENES))
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--work", type=Path, help="renders and results (default OUT/work)")
     args = parser.parse_args()
-    names = {"board": "board", "board_ends": "board, ends beyond", "motorcycle": "motorcycle"}
     work = args.work or args.out / "work"
     work.mkdir(parents=True, exist_ok=True)
     args.out.mkdir(parents=True, exist_ok=True)
     results = {}
-    for key in args.scenes.split(","):
-        if key not in names:
-            raise SystemExit(f"unknown scene {key!r}; choose from {', '.join(names)}")
-        pattern, truth = prepare(names[key], work)
+    for name in args.scenes.split(","):
+        if name not in SCENES:
+            raise SystemExit(f"unknown scene {name!r}; choose from {', '.join(SCENES)}")
+        pattern, truth, span = prepare(name, work)
         flexdof_args = shlex.split(args.flexdof_args)
-        result = run_flexdof(key, pattern, work, flexdof_args)
-        quality = run_flexdof(f"{key}_multiframe", pattern, work, [*flexdof_args, *MULTIFRAME])
+        result = run_flexdof(name, pattern, work, flexdof_args)
+        quality = run_flexdof(f"{name}_multiframe", pattern, work, [*flexdof_args, *MULTIFRAME])
         extra = {"truth": truth, "multiframe": quality}
-        results[key] = evaluate(key, pattern, result, work, args.out, args.focus_stack, extra)
-        print("\n".join(summary({key: results[key]})[2:]), flush=True)
+        results[name] = evaluate(name, pattern, result, work, args.out, args.focus_stack, extra)
+        results[name]["true_span_px"] = span
+        print("\n".join(summary({name: results[name]})[2:]), flush=True)
     text = report(results, args).split("\n", 2)[2]  # its tables, under this file's heading
     head = [
         "# The region measures against a ground truth (issue 13)",
