@@ -41,8 +41,8 @@ def _pairs(n: int) -> list[tuple[int, int]]:
     ``k`` steps away underestimates ``D`` by about ``1 / (8 k^2)``: 12% for
     neighbours, 3% for k = 2. On stacks rendered with occlusion, breathing, shot noise
     and 8-bit frames (tilted boards and the motorcycle, 5-9 frames,
-    ``tests/benchmarks/regions_vs_truth.py``) pairs 2 and 3 apart read the span 5-12%
-    low; with pairs 4 apart as well, -9% to +2% (issue 13).
+    ``tests/benchmarks/regions_vs_truth.py``) pairs 2 and 3 apart read the span -12% to
+    +18% (six of eight 5-12% low); with pairs 4 apart as well, -9% to +2% (issue 13).
     """
     steps = {1, 2} if n < 4 else {2, 3} if n < 5 else {2, 3, 4, max(2, n // 3)}
     return [(i, i + s * d) for i in range(n) for s in steps for d in (-1, 1) if 0 <= i + s * d < n]

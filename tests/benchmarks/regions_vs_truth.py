@@ -251,7 +251,7 @@ def main() -> int:
         *summary(results),
         "",
     ]
-    (args.out / "regions_vs_truth.md").write_text("\n".join(head) + text)
+    (args.out / "regions_vs_truth.md").write_text("\n".join(head) + "\n" + text)
     return 0
 
 
