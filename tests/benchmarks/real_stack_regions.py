@@ -483,6 +483,15 @@ def report(results: dict, args) -> str:
     return "\n".join(lines) + "\n"
 
 
+def output_folders(args) -> Path:
+    """Make ``args.out`` and the work folder (``args.work``, default ``OUT/work``); return
+    the work folder."""
+    work = args.work or args.out / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    return work
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--stacks", default=",".join(STACKS))
@@ -514,9 +523,7 @@ def main() -> int:
     args = parser.parse_args()
     stacks = {**STACKS, **dict(item.split("=", 1) for item in args.stack)}
     given = dict(item.split("=", 1) for item in args.result)
-    work = args.work or args.out / "work"
-    work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
+    work = output_folders(args)
     results = {}
     for name in args.stacks.split(","):
         if name not in stacks:

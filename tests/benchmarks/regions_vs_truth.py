@@ -54,6 +54,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_stack_regions import (  # noqa: E402
     evaluate,
     good_regions,
+    output_folders,
     report,
     run_flexdof,
 )
@@ -224,9 +225,7 @@ def main() -> int:
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--work", type=Path, help="renders and results (default OUT/work)")
     args = parser.parse_args()
-    work = args.work or args.out / "work"
-    work.mkdir(parents=True, exist_ok=True)
-    args.out.mkdir(parents=True, exist_ok=True)
+    work = output_folders(args)
     results = {}
     for name in args.scenes.split(","):
         if name not in SCENES:
