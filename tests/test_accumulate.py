@@ -34,7 +34,7 @@ def test_a_translation_warps_each_frame_before_weighting(tmp_path):
     shifts = [(0, 0), (2, 1), (1, 3)]  # (rows, cols) moved down/right on the reference
     homographies = [np.array([[1.0, 0, dc], [0, 1.0, dr], [0, 0, 1]]) for dr, dc in shifts]
     weights = [0.5, 0.2, 0.3]
-    total, _, _, _, _ = dask.compute(
+    total, _, _, _, _, _ = dask.compute(
         weighted_sum_graph(paths, homographies, weights, shape), scheduler="sync"
     )[0]
     ref = np.zeros(shape)
@@ -48,7 +48,7 @@ def test_per_row_weights_on_colour_frames(tmp_path):
     shape = (7, 4)
     paths, frames = _write(tmp_path, [rng.uniform(0.0, 0.9, (*shape, 3)) for _ in range(3)])
     rows = rng.uniform(0.0, 1.0, (3, shape[0]))
-    total, _, _, _, _ = dask.compute(
+    total, _, _, _, _, _ = dask.compute(
         weighted_sum_graph(paths, [None] * 3, list(rows), shape), scheduler="sync"
     )[0]
     ref = np.zeros((*shape, 3))
@@ -64,7 +64,7 @@ def test_decode_seconds_are_summed_over_the_frames_read(tmp_path, monkeypatch):
     rng = np.random.default_rng(9)
     paths, _ = _write(tmp_path, [rng.uniform(0.0, 0.9, (5, 6)) for _ in range(6)])
     weights = [0.1, 0.0, 0.2, 0.3, 0.1, 0.3]  # frame 1 is never read
-    _, _, read_s, _, _ = dask.compute(
+    _, _, read_s, _, _, _ = dask.compute(
         weighted_sum_graph(paths, [None] * 6, weights, (5, 6)), scheduler="sync"
     )[0]
     assert read_s == 5.0  # one tick per read, five frames read
@@ -97,7 +97,7 @@ def test_a_frame_listed_twice_counts_twice(tmp_path):
     rng = np.random.default_rng(10)
     paths, (p, q) = _write(tmp_path, [rng.uniform(0.0, 0.9, (4, 5)) for _ in range(2)])
     for scheduler in ("sync", "threads"):
-        total, _, _, _, _ = dask.compute(
+        total, _, _, _, _, _ = dask.compute(
             weighted_sum_graph([paths[0], paths[1]] * 2, [None] * 4, [0.5, 0.25] * 2, (4, 5)),
             scheduler=scheduler,
         )[0]
@@ -117,7 +117,7 @@ def test_kept_frames_are_the_grey_frames_as_read(tmp_path, scheduler, warped, ch
     paths, decoded = _write(tmp_path, [rng.uniform(0.0, 0.9, size) for _ in range(4)])
     shift = np.array([[1.0, 0, 2.0], [0, 1.0, 1.0], [0, 0, 1]])  # a warp the copies skip
     homographies = [shift if warped else None] * 4
-    total, _, _, _, kept = dask.compute(
+    total, _, _, _, kept, _ = dask.compute(
         weighted_sum_graph(paths, homographies, [0.4, 0.0, 0.3, 0.3], (6, 7), keep=(0, 1, 3)),
         scheduler=scheduler,
     )[0]
@@ -130,3 +130,38 @@ def test_kept_frames_are_the_grey_frames_as_read(tmp_path, scheduler, warped, ch
     plain = dask.compute(weighted_sum_graph(paths, homographies, [0.4, 0.0, 0.3, 0.3], (6, 7)))
     np.testing.assert_array_equal(total, plain[0][0])  # keeping changes nothing of the sum
     assert plain[0][4] == {}
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+def test_detail_sums_the_frames_grey_images_by_their_maps(tmp_path, channels):
+    """The inner frames' detail composite: ``(sum_i m_i g_i, sum_i m_i)`` over the frames
+    given a map (a frame of weight 0 is never read, so lends nothing), checked against a
+    numpy sum of the channel means; the weighted sum itself is unchanged."""
+    rng = np.random.default_rng(21)
+    size = (6, 7, 3) if channels == 3 else (6, 7)
+    paths, decoded = _write(tmp_path, [rng.uniform(0.0, 0.9, size) for _ in range(4)])
+    maps = {i: rng.uniform(0.0, 1.0, (6, 7)).astype(np.float32) for i in (1, 2, 3)}
+    weights = [0.4, 0.3, 0.0, 0.3]
+    lends = SimpleNamespace(inner=[1, 2, 3], weight=maps.get)
+    graph = weighted_sum_graph(paths, [None] * 4, weights, (6, 7), detail=lends)
+    total, _, _, _, _, (weighted, summed) = dask.compute(graph, scheduler="sync")[0]
+    grey = [d.mean(axis=2) if channels == 3 else d for d in decoded]
+    np.testing.assert_allclose(weighted, maps[1] * grey[1] + maps[3] * grey[3], rtol=1e-5)
+    np.testing.assert_allclose(summed, maps[1] + maps[3], rtol=1e-6)
+    plain = dask.compute(weighted_sum_graph(paths, [None] * 4, weights, (6, 7)))[0]
+    np.testing.assert_array_equal(total, plain[0])
+    assert plain[5] is None
+
+
+def test_detail_warps_the_grey_frame_and_brings_the_map_to_the_frame_size(tmp_path):
+    """A frame shifted by (1, 2) px with a map given at half size: its grey image lands
+    shifted (bicubic, exact for whole pixels) and the map is resized to the frame."""
+    rng = np.random.default_rng(5)
+    paths, decoded = _write(tmp_path, [rng.uniform(0.1, 0.9, (8, 10))])
+    shift = np.array([[1.0, 0, 2.0], [0, 1.0, 1.0], [0, 0, 1]])
+    half = np.full((4, 5), 0.5, np.float32)
+    lends = SimpleNamespace(inner=[0], weight=lambda i: half)
+    graph = weighted_sum_graph(paths, [shift], [1.0], (8, 10), detail=lends)
+    *_, (weighted, summed) = dask.compute(graph, scheduler="sync")[0]
+    np.testing.assert_allclose(summed, 0.5)
+    np.testing.assert_allclose(weighted[1:, 2:], 0.5 * decoded[0][:-1, :-2], rtol=1e-5)

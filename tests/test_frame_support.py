@@ -233,7 +233,11 @@ def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
     assert np.mean(outside(unclipped.image)) > 0.01  # the clip did something
     assert set(guarded.sidecar["frame_guard"]) == {"sharpest_frame_fraction", "noise_ceiling"}
     assert "frame_guard" not in plain.sidecar and "frame_guard" not in unclipped.sidecar
-    assert set(plain.sidecar["frame_range"]) == {"flat_fraction", "beyond_ends"}
+    assert set(plain.sidecar["frame_range"]) == {
+        "flat_fraction",
+        "beyond_ends",
+        "inner_detail_kept",
+    }
     assert "frame_range" not in unclipped.sidecar and "frame_range" not in guarded.sidecar
 
 

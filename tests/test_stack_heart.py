@@ -211,7 +211,7 @@ def test_weighted_sum_graph_equals_a_numpy_sum(tmp_path, n, colour):
     paths, arrays = _frames(tmp_path, n, shape, seed=n, colour=colour)
     weights = np.random.default_rng(10 + n).uniform(0.1, 1.0, n)
     weights[n // 2] = 0.0 if n > 2 else weights[n // 2]  # a skipped frame
-    total, clipped, read_s, _, _ = dask.compute(
+    total, clipped, read_s, _, _, _ = dask.compute(
         weighted_sum_graph(paths, [None] * n, weights, shape), scheduler="sync"
     )[0]
     ref = sum(np.float64(w) * a.astype(np.float64) for w, a in zip(weights, arrays))
@@ -230,7 +230,7 @@ def test_weighted_sum_graph_per_row_weights_and_identity_warps(tmp_path):
     rows = np.random.default_rng(4).uniform(0.0, 1.0, (4, shape[0]))
     rows[2] = 0.0  # never read
     homographies = [np.eye(3)] * 4
-    total, _, _, _, _ = dask.compute(
+    total, _, _, _, _, _ = dask.compute(
         weighted_sum_graph(paths, homographies, list(rows), shape), scheduler="threads"
     )[0]
     ref = sum(r[:, None] * a for r, a in zip(rows, arrays))
@@ -254,7 +254,7 @@ def test_weighted_sum_graph_is_one_chain_per_lane(tmp_path, lanes):
     assert len(firsts) == lanes
     for key in steps:
         assert sum(str(d).startswith("_add_frame") for d in deps[key]) <= 1
-    total, _, _, _, _ = dask.compute(graph, scheduler="threads")[0]
+    total, _, _, _, _, _ = dask.compute(graph, scheduler="threads")[0]
     ref = sum(np.float64(w) * a.astype(np.float64) for w, a in zip(weights, arrays))
     np.testing.assert_allclose(total, ref, rtol=1e-5, atol=1e-6)
 

@@ -199,9 +199,11 @@ class EndDepth:
     pixels: int
 
 
-def _near_other_depths(sharpest, textured, x, end, others, span_px: float) -> np.ndarray:
+def near_other_depths(sharpest, textured, x, end, others, span_px: float) -> np.ndarray:
     """Pixels whose neighbourhood in the fit of ``end`` reaches content sharpest two or
     more frames away from it (``x``: normalised positions; ``span_px`` at the map's scale).
+    ``end`` may be any frame; with ``others`` ``[end]`` the fit's reach is left out (the
+    inner frames' own detail, :mod:`pipeline.jobs.frame_detail`).
 
     Content sharpest in frame ``r`` lies blurred by ``D |x_r - x_e|`` in the end frame;
     predicting frame ``j`` blurs by up to ``D sqrt(dx^2 + dx)`` more (the widest search
@@ -257,7 +259,7 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0, map
     (content inside the range reads <= 0). Sec. 4.1: the IPSF of such a depth is wider
     than the stack's, whose kernel leaves it soft (issue 13: pcb7's far barcode).
     Pixels within reach of content sharpest two or more frames away are left out
-    (:func:`_near_other_depths`): at an occlusion edge the fit reads 0.06-0.2 of the
+    (:func:`near_other_depths`): at an occlusion edge the fit reads 0.06-0.2 of the
     range beyond where the truth is 0 (``tests/test_end_depths.py``).
 
     Parameters
@@ -297,7 +299,7 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0, map
     order = np.argsort(x, kind="stable")
     ends = []
     for end, others in ((order[0], order[1:4]), (order[-1], order[-2:-5:-1])):
-        away = ~_near_other_depths(sharpest, textured, x, end, others, span_px / downscale)
+        away = ~near_other_depths(sharpest, textured, x, end, others, span_px / downscale)
         mask = masks[end] & away
         beyond = []
         if mask.sum() > MIN_MASK_PX:

@@ -42,6 +42,7 @@ from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
 from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
+from pipeline.jobs.frame_detail import away_from_other_depths, detail_maps, keep_inner_detail
 from pipeline.jobs.multiframe import restore_multiframe
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import (
@@ -393,11 +394,14 @@ def accumulate(
     progress: Progress = _no_progress,
     support: str | None = None,
     keep=(),
-) -> tuple[np.ndarray, np.ndarray, FrameSupport | None, dict]:
+    detail=None,
+) -> tuple[np.ndarray, np.ndarray, FrameSupport | None, dict, tuple | None]:
     """``sum_i w_i warp(frame_i)`` streamed through dask, the pixels clipped in any frame
     and, with ``support``, the frames' per-pixel range (``"range"``), or also their
     sharpest frame and noise (``"full"``); the grey images of the frames in ``keep``, as
-    read (:func:`pipeline.parallel.accumulate.weighted_sum_graph`).
+    read; with ``detail`` (frame index -> where it is the sharpest), the frames' grey
+    images summed by those maps, and the maps' sum
+    (:func:`pipeline.parallel.accumulate.weighted_sum_graph`).
 
     ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
     """
@@ -411,15 +415,16 @@ def accumulate(
         support=support,
         white=aligned.stack.white,
         keep=keep,
+        detail=detail,
     )
     used = int(np.count_nonzero(per_frame.reshape(len(per_frame), -1).max(axis=1) > 0))
     progress("accumulate", 0, used)
     with _TaskProgress("_add_frame", lambda done: progress("accumulate", done, used)):
-        ((average, clipped, read_s, frames, kept),) = dask.compute(graph)
+        ((average, clipped, read_s, frames, kept, sharp),) = dask.compute(graph)
     progress("accumulate", used, used)
     aligned.timings["accumulate"] = time.perf_counter() - t0
     aligned.timings["read"] = read_s  # full-resolution decoding, summed over worker threads
-    return average, clipped, frames, kept
+    return average, clipped, frames, kept, sharp
 
 
 def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, options) -> dict:
@@ -549,9 +554,17 @@ def process_stack(
     if aligned.previews is not None and (needs_fit or want_ends):
         small = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
     aligned.previews = None  # not needed past the alignment: memory flat in the frame count
-    end_previews = None  # what the ends' correction reads, made in the kernel's thread
+    ends_read = None  # what the ends' correction reads (pipeline.jobs.ends)
+    inner = None  # where each inner frame is the sharpest, for its own detail
     if want_ends:
-        end_previews = (lambda _: (*small, None)) if small is not None else _streamed_end_previews
+        if small is not None:
+            focus = defocus.FocusMaps()
+            for i, preview in enumerate(small[0]):
+                focus.add(i, preview)
+            ends_read = (*small, focus)
+        else:  # no previews (--align none, analytic): read one at a time, before the sum
+            ends_read = _streamed_end_previews(aligned)
+        inner = detail_maps(ends_read[2], aligned.positions)
     with ThreadPoolExecutor(1, thread_name_prefix="flexdof-kernel") as pool:
         kernel_job = pool.submit(
             _stack_ipsf,
@@ -560,15 +573,16 @@ def process_stack(
             blur_span,
             small if needs_fit else None,
             options.frame_guard,
-            ends=end_previews,
+            ends=ends_read,
         )
-        average, clipped, frames, kept = accumulate(
+        average, clipped, frames, kept, sharp = accumulate(
             aligned,
             weights,
             options,
             progress=progress,
             support=_support(options),
             keep=defocus.end_pair(aligned.positions) if want_ends else (),
+            detail=inner,
         )
         kernel, kernel_samples, kernel_summary, beyond = kernel_job.result()
     check_white(stack, average)
@@ -610,10 +624,17 @@ def process_stack(
         for end in ends:
             end["frame"] = stack.files[end["frame"]].name
         check_end_dominance(stack, ends)
+        inner_kept = None
+        if sharp is not None:  # each inner frame's own detail, away from depth changes
+            span, factor = kernel_summary["blur_span_px"], ends_read[1]
+            away = away_from_other_depths(inner, span / factor, factor)
+            inner_kept = keep_inner_detail(result, sharp, away, clipped)
         result, flat = quiet_flat_areas(result, average, frames)
         result = clip_to_frames(result, frames, clipped)  # last: nothing leaves the range
         timings["frame_range"] = time.perf_counter() - t0
         sidecar["frame_range"] = {"flat_fraction": round(flat, 4), "beyond_ends": ends}
+        if inner_kept is not None:
+            sidecar["frame_range"]["inner_detail_kept"] = round(inner_kept, 4)
     progress("deconvolve", 1, 1)
     if multi:
         t0 = time.perf_counter()
@@ -646,9 +667,10 @@ def _stack_ipsf(
     """The stack's IPSF (:func:`stack_kernel`, Eqs. 5-6), after measuring the blur span
     (:func:`pipeline.core.defocus.estimate_blur_span`) on ``fit``, the aligned previews
     at the fit's resolution and their downscale factor, when given. With the frame
-    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``. With ``ends``, a callable
-    of ``aligned`` that yields the ends' aligned previews, their downscale factor and the
-    stack's focus maps (``None``: made from the previews), also the kernels of the
+    guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``. With ``ends``, the ends'
+    aligned previews, their downscale factor and the stack's focus maps (made before the
+    accumulation, which also needs the maps: :mod:`pipeline.jobs.frame_detail`), also the
+    kernels of the
     content at and beyond the range's ends (:func:`pipeline.jobs.ends.end_kernels`; else
     none). Returns the kernel, its per-depth samples, its summary and the end kernels."""
     t0 = time.perf_counter()
@@ -677,7 +699,7 @@ def _stack_ipsf(
     beyond = []
     if ends is not None:
         beyond = end_kernels(
-            ends(aligned),
+            ends,
             aligned.positions,
             weights,
             summary["blur_span_px"],

@@ -6,10 +6,12 @@ frames per lane are in memory whatever the stack's length.
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
+import cv2
 import dask
 import numpy as np
 
@@ -27,14 +29,24 @@ LANES = 2
 
 # ----------------------------------------------------------------------------- frame leaves
 def _warped_leaf(
-    path: str, homography, weight, shape, support: str | None = None, white=None, key=None
+    path: str,
+    homography,
+    weight,
+    shape,
+    support: str | None = None,
+    white=None,
+    key=None,
+    detail=None,
 ):
     """Read one frame (with white level ``white``, :func:`pipeline.io.read.read_frame`),
     warp it onto the reference, weight it; its clipped pixels; decode time; with
     ``support`` (``"range"`` or ``"full"``), its
     :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``); with a ``key``,
     ``{key: its grey image}`` (:func:`~pipeline.core.colour.mean_grey`, as read: not
-    warped), else ``{}``.
+    warped), else ``{}``; with ``detail``, a zero-argument callable giving the frame's map
+    (0..1, any size: where it is the sharpest), ``(m g, m)``: its grey image warped bicubic
+    (fine detail kept, see :func:`pipeline.core.align.warp`) times the map brought to
+    ``shape``, and that map (else ``None``).
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
     """
@@ -42,6 +54,13 @@ def _warped_leaf(
     frame = read_frame(path, white=white)
     read_s = time.perf_counter() - t0
     kept = {} if key is None else {key: np.array(mean_grey(frame), np.float32)}
+    sharp = None
+    if detail is not None:
+        grey = mean_grey(frame)
+        if homography is not None:
+            grey = align.warp(grey, homography, shape, interpolation="cubic")
+        where = cv2.resize(np.asarray(detail(), np.float32), (shape[1], shape[0]))
+        sharp = (np.multiply(grey, where, dtype=np.float32), where)
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
@@ -50,21 +69,28 @@ def _warped_leaf(
         frame *= np.float32(weight)
     else:
         frame *= np.asarray(weight, np.float32).reshape((-1,) + (1,) * (frame.ndim - 1))
-    return frame, clipped, read_s, stats, kept
+    return frame, clipped, read_s, stats, kept, sharp
 
 
 def _merge(a, b):
     """Sum two partial weighted sums (in place), OR their clipped masks, add decode times,
-    merge their frame statistics and kept grey frames."""
+    merge their frame statistics and kept grey frames, and add their detail sums."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one step: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    return a[0], a[1], a[2] + b[2], None if a[3] is None else a[3].merge(b[3]), a[4] | b[4]
+    sharp = a[5] if b[5] is None else b[5] if a[5] is None else a[5]
+    if a[5] is not None and b[5] is not None:
+        for mine, theirs in zip(a[5], b[5]):
+            np.add(mine, theirs, out=mine)
+    stats = None if a[3] is None else a[3].merge(b[3])
+    return a[0], a[1], a[2] + b[2], stats, a[4] | b[4], sharp
 
 
-def _add_frame(partial, path: str, homography, weight, shape, support=None, white=None, key=None):
+def _add_frame(
+    partial, path: str, homography, weight, shape, support=None, white=None, key=None, detail=None
+):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
-    leaf = _warped_leaf(path, homography, weight, shape, support, white, key)
+    leaf = _warped_leaf(path, homography, weight, shape, support, white, key, detail)
     return leaf if partial is None else _merge(partial, leaf)
 
 
@@ -78,6 +104,7 @@ def weighted_sum_graph(
     support: str | None = None,
     white: float | None = None,
     keep=(),
+    detail=None,
 ):
     """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
 
@@ -88,29 +115,43 @@ def weighted_sum_graph(
     140 MiB more at 28 frames of 3 Mpx than at 7) while ``lanes`` workers decode
     side by side. The result's bits depend on ``lanes`` (the float32 summation
     order), not on the scheduler or its threads. Returns a Delayed yielding
-    ``(sum, clipped_any_frame, decode_seconds, support, kept)``; ``support`` is the read
+    ``(sum, clipped_any_frame, decode_seconds, support, kept, sharp)``; ``support`` is the read
     frames' :class:`~pipeline.core.frame_support.FrameSupport` when asked for (``"range"``:
     their per-pixel range only; ``"full"``: all of it), else ``None``; ``kept`` maps each
     index in ``keep`` whose frame is read to that frame's grey image as read (not warped;
     :func:`~pipeline.core.colour.mean_grey`), so the end frames' detail needs no second
-    decode. ``white``: the frames' white level (:func:`pipeline.io.read.read_frame`).
+    decode. ``detail`` (e.g. :class:`pipeline.jobs.frame_detail.DetailMaps`) lists in
+    ``inner`` the frames that lend their detail and gives in ``weight(i)`` frame ``i``'s map
+    (0..1, any size) of where it is the sharpest, made in the frame's task; ``sharp`` is
+    then ``(sum_i m_i g_i, sum_i m_i)`` over the read frames among them, ``g_i`` the grey
+    frame warped bicubic and ``m_i`` its map at ``shape`` (the frames' own detail,
+    :mod:`pipeline.jobs.frame_detail`, without keeping the frames: memory flat in their
+    number), else ``None``. ``white``: the frames' white level
+    (:func:`pipeline.io.read.read_frame`).
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")
     keep = {int(i) for i in keep}
+    lends = set() if detail is None else set(detail.inner)
     used = [
-        (str(path), h, float(w) if np.ndim(w) == 0 else np.asarray(w), i if i in keep else None)
+        (
+            str(path),
+            h,
+            float(w) if np.ndim(w) == 0 else np.asarray(w),
+            i if i in keep else None,
+            functools.partial(detail.weight, i) if i in lends else None,
+        )
         for i, (path, h, w) in enumerate(zip(files, homographies, weights))
         if np.max(w) > 0
     ]
     level = []
     for lane in range(min(int(lanes), len(used))):
         partial = None
-        for path, h, w, key in used[lane :: int(lanes)]:
+        for path, h, w, key, where in used[lane :: int(lanes)]:
             # pure=False: equal steps (a frame listed twice, first in two lanes) stay separate
             # tasks; a shared one would be added into, in place, by two later steps
             partial = dask.delayed(_add_frame, pure=False)(
-                partial, path, h, w, tuple(shape), support, white, key
+                partial, path, h, w, tuple(shape), support, white, key, where
             )
         level.append(partial)
     while len(level) > 1:
