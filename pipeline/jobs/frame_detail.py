@@ -12,7 +12,16 @@ frames' grey images weighted by the maps without keeping them
 (:func:`pipeline.parallel.accumulate.weighted_sum_graph`'s ``detail``), and
 :func:`keep_inner_detail` hands that composite's 2-8 px bands to the result where it
 shows more of them (:func:`pipeline.jobs.ends.keep_end_detail`: a frame's grain is no
-detail, and only a real frame's bands enter, so nothing rings).
+detail, and only a real frame's bands enter, so nothing rings), away from other depths
+(:func:`away_from_other_depths`).
+
+Measured against a ground truth (``tests/benchmarks/regions_vs_truth.py``,
+``tests/benchmarks/synthetic_guard.py``): +0.16 to +1.32 dB on eight rendered stacks of a
+tilted board and the motorcycle (4.1 dB summed), +0.06 to +0.25 dB on three-plane stacks,
++0.17 to +0.22 dB on a ray-traced depth edge with the strip along the edge unchanged; the
+real stacks' region counts against focus-stack are unchanged. It costs pcb7's 2 s job 0.2-0.3 s
+(the grey warps and maps in the accumulation, one detail pass) and two
+full-resolution images per accumulation lane.
 """
 
 from __future__ import annotations

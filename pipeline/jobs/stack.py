@@ -399,9 +399,9 @@ def accumulate(
     """``sum_i w_i warp(frame_i)`` streamed through dask, the pixels clipped in any frame
     and, with ``support``, the frames' per-pixel range (``"range"``), or also their
     sharpest frame and noise (``"full"``); the grey images of the frames in ``keep``, as
-    read; with ``detail`` (frame index -> where it is the sharpest), the frames' grey
-    images summed by those maps, and the maps' sum
-    (:func:`pipeline.parallel.accumulate.weighted_sum_graph`).
+    read; with ``detail`` (:class:`pipeline.jobs.frame_detail.DetailMaps`: where each
+    inner frame is the sharpest), those frames' grey images summed by their maps, and the
+    maps' sum (:func:`pipeline.parallel.accumulate.weighted_sum_graph`).
 
     ``weights`` is (frames,) or, for per-row DOFs, (rows, frames).
     """
@@ -670,9 +670,9 @@ def _stack_ipsf(
     guard, the fitted span is scaled by ``FITTED_SPAN_SCALE``. With ``ends``, the ends'
     aligned previews, their downscale factor and the stack's focus maps (made before the
     accumulation, which also needs the maps: :mod:`pipeline.jobs.frame_detail`), also the
-    kernels of the
-    content at and beyond the range's ends (:func:`pipeline.jobs.ends.end_kernels`; else
-    none). Returns the kernel, its per-depth samples, its summary and the end kernels."""
+    kernels of the content at and beyond the range's ends
+    (:func:`pipeline.jobs.ends.end_kernels`; else none). Returns the kernel, its per-depth
+    samples, its summary and the end kernels."""
     t0 = time.perf_counter()
     if fit is not None:
         small, factor = fit
