@@ -130,3 +130,17 @@ def test_the_job_comes_closer_to_the_truth_and_keeps_occlusion_edges(planes, tmp
     assert psnr(with_detail.image[:, edges], sharp[:, edges]) > (
         psnr(without.image[:, edges], sharp[:, edges]) - 0.25
     )
+
+
+def test_grain_is_not_detail_where_the_composite_is_empty_at_the_centre():
+    """A noisy composite over the image's left and right thirds only (the centre lies where
+    an end frame is the sharpest) and a flat result: the composite's grain is estimated
+    where it covers, so none of it is taken (a centre-crop estimate read 0 there)."""
+    rng = np.random.default_rng(4)
+    shape = (200, 1400)  # wider than the 1024 px centre crop of a frame's noise estimate
+    grain = (0.4 + 0.01 * rng.standard_normal(shape)).astype(np.float32)
+    total = np.zeros(shape, np.float32)
+    total[:, :150] = total[:, -150:] = 1.0
+    result = np.full(shape, 0.4, np.float32)
+    keep_inner_detail(result, (grain * total, total), np.ones(shape, np.float32))
+    assert float(np.std(result[20:-20, 20:130])) < 0.2 * 0.01

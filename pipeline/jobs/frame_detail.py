@@ -32,8 +32,8 @@ import functools
 import cv2
 import numpy as np
 
+from pipeline.core.deconvolve.common import noise_sigma_2d
 from pipeline.core.defocus import FocusMaps, end_pair, near_other_depths
-from pipeline.core.frame_support import frame_noise
 from pipeline.jobs.ends import DETAIL_SIGMAS_PX, DETAIL_WINDOW, keep_end_detail
 
 MAP_SMOOTH_PX = 1.5  # the sharpest-frame maps' blur (px of the maps), so frames blend at seams
@@ -130,5 +130,7 @@ def keep_inner_detail(result, sharp, away, clipped=None) -> float:
     weight = np.minimum(total, np.float32(1.0)) * reach
     if clipped is not None:
         weight[clipped] = 0
-    noise = float(frame_noise(own, total > 0.5)[0])
+    # the composite's grain over all the pixels it covers: a centre crop (frame_noise) may
+    # lie where an end frame is the sharpest and the composite is empty, and would read 0
+    noise = noise_sigma_2d(own, total > 0.5)
     return keep_end_detail(result, own, weight, noise)
