@@ -86,7 +86,10 @@ def away_from_other_depths(detail: DetailMaps, span_px: float, factor: float = 1
     into it: a cut the scene does not have, whose band energy reads as detail. On nine-frame
     three-plane stacks the inner frames' detail gained 0.4-1.1 dB away from the planes'
     edges but lost 3.1-3.2 dB in 12 px strips along them (29.62 against 30.82 dB at sigma
-    0.01 over the image) until those pixels were left out.
+    0.01 over the image) until those pixels were left out: now 31.07 dB, the strips within
+    0.1 dB of the result without the step. Content of any texture counts (a smooth plane's
+    bleed is a cut too: with textured content only, as the end fit counts it, the strips
+    still lost 1.4 dB), and the detail bands' reach is added around it.
     """
     textured = np.ones(detail.focus.sharpest.shape, bool)  # any content: smooth bleeds too
     total = np.zeros(detail.focus.sharpest.shape, np.float32)
