@@ -26,13 +26,6 @@ def _texture(seed: int, shape=(96, 120)) -> np.ndarray:
     return 0.4 + 0.1 * t / t.std()
 
 
-def _focus(frames) -> FocusMaps:
-    focus = FocusMaps()
-    for i, frame in enumerate(frames):
-        focus.add(i, frame)
-    return focus
-
-
 def test_maps_mark_where_each_inner_frame_is_the_sharpest():
     """Five frames of one texture, frame k sharp in the k-th column strip and blurred
     elsewhere: the inner frames' maps are high in their own strip and 0 in the others; the
@@ -45,7 +38,7 @@ def test_maps_mark_where_each_inner_frame_is_the_sharpest():
         f = blurred.copy()
         f[:, k * width : (k + 1) * width] = sharp[:, k * width : (k + 1) * width]
         frames.append(f)
-    detail = detail_maps(_focus(frames), np.arange(5.0))
+    detail = detail_maps(FocusMaps.of(frames), np.arange(5.0))
     assert detail.inner == [1, 2, 3] and detail.weight(0) is None and detail.weight(4) is None
     for k in detail.inner:
         m = detail.weight(k)
@@ -88,7 +81,7 @@ def test_composite_stays_away_from_content_two_or_more_frames_off():
     frames = [cv2.GaussianBlur(sharp, (0, 0), 4.0) for _ in range(7)]
     for k, cols in ((1, np.s_[:, :50]), (2, np.s_[:, 50:100]), (5, np.s_[:, 100:])):
         frames[k][cols] = sharp[cols]
-    detail = detail_maps(_focus(frames), np.arange(7.0))
+    detail = detail_maps(FocusMaps.of(frames), np.arange(7.0))
     away = away_from_other_depths(detail, span_px=36.0)  # frame 2 sees 5 blurred by 18 px
     row = away[30]
     assert row[10:40].min() > 0.99  # frame 1, next to frame 2 only

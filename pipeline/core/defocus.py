@@ -68,6 +68,14 @@ class FocusMaps:
         self.sharpest: np.ndarray | None = None
         self.best: np.ndarray | None = None
 
+    @classmethod
+    def of(cls, frames) -> FocusMaps:
+        """The maps of aligned grey ``frames`` (a sequence), added in index order."""
+        maps = cls()
+        for i, frame in enumerate(frames):
+            maps.add(i, frame)
+        return maps
+
     def add(self, index: int, grey: np.ndarray) -> None:
         """Add frame ``index`` (aligned, grey)."""
         focus = _focus_measure(_normalised(grey))
@@ -97,9 +105,7 @@ def _sharpest_masks(frames):
     textured pixels (the 30% best in focus) 5% or more from the borders where it is
     the sharpest."""
     grey = [_normalised(f) for f in frames]
-    maps = FocusMaps()
-    for i, f in enumerate(frames):
-        maps.add(i, f)
+    maps = FocusMaps.of(frames)
     masks = maps.masks(range(len(grey)))
     return grey, maps.sharpest, [masks[i] for i in range(len(grey))]
 
@@ -291,9 +297,7 @@ def end_depths(frames, positions, span_px: float, *, downscale: float = 1.0, map
     x = (x - x.min()) / np.ptp(x)
     read = end_frames(x)
     if maps is None:
-        maps = FocusMaps()
-        for i, frame in enumerate(frames):
-            maps.add(i, frame)
+        maps = FocusMaps.of(frames)
     grey = {i: _normalised(frames[i]) for i in read}
     sharpest, masks, textured = maps.sharpest, maps.masks(read), maps.textured()
     order = np.argsort(x, kind="stable")

@@ -295,7 +295,8 @@ def _streamed_end_previews(aligned: AlignedStack):
     at the fit's resolution of the frames :func:`pipeline.core.defocus.end_frames` names,
     their downscale factor, and the stack's :class:`~pipeline.core.defocus.FocusMaps`.
     Frames are read one at a time (a cheap reduced decode for JPEGs), so memory stays
-    flat in the number of frames."""
+    flat in the number of frames; before the accumulation, which needs the maps for the
+    inner frames' detail (:mod:`pipeline.jobs.frame_detail`)."""
     keep = set(defocus.end_frames(aligned.positions))
     maps, kept = defocus.FocusMaps(), {}
     for i, (path, alignment) in enumerate(zip(aligned.stack.files, aligned.alignments)):
@@ -558,10 +559,7 @@ def process_stack(
     inner = None  # where each inner frame is the sharpest, for its own detail
     if want_ends:
         if small is not None:
-            focus = defocus.FocusMaps()
-            for i, preview in enumerate(small[0]):
-                focus.add(i, preview)
-            ends_read = (*small, focus)
+            ends_read = (*small, defocus.FocusMaps.of(small[0]))
         else:  # no previews (--align none, analytic): read one at a time, before the sum
             ends_read = _streamed_end_previews(aligned)
         inner = detail_maps(ends_read[2], aligned.positions)

@@ -77,10 +77,10 @@ def _merge(a, b):
     merge their frame statistics and kept grey frames, and add their detail sums."""
     np.add(a[0], b[0], out=a[0])  # each partial sum feeds exactly one step: safe in place
     np.logical_or(a[1], b[1], out=a[1])
-    sharp = a[5] if b[5] is None else b[5] if a[5] is None else a[5]
-    if a[5] is not None and b[5] is not None:
-        for mine, theirs in zip(a[5], b[5]):
-            np.add(mine, theirs, out=mine)
+    if a[5] is None or b[5] is None:
+        sharp = a[5] if b[5] is None else b[5]
+    else:
+        sharp = tuple(np.add(mine, theirs, out=mine) for mine, theirs in zip(a[5], b[5]))
     stats = None if a[3] is None else a[3].merge(b[3])
     return a[0], a[1], a[2] + b[2], stats, a[4] | b[4], sharp
 
