@@ -27,9 +27,11 @@ only) to 27.43 dB with the ends' own depths and the fit kept off depth edges, an
 kernel restored one side and rang into the other (16 px strips along the edges: 22.40
 dB, 25.4 dB with the check). On the real stacks the regions as good as focus-stack went
 from 0/8/4/7 to 2/8/7/8 with the correction beyond the ends, were 2/8/7/7 with the
-ends' own depths, the fit kept off depth edges and the end frame's check, and are 2/8/9/7
-with the end frames' own detail (``tests/benchmarks/results/real_regions/NOTE.md``, stops
-27-29).
+ends' own depths, the fit kept off depth edges and the end frame's check, were 2/8/9/7
+with the end frames' own detail, and are 4/8/9/8 with the correction's fine and coarse bands
+each checked against the end frame (:func:`_correction_bands`; pcb7's barcode beyond its last
+frame was hollow before, dark edges round grey centres)
+(``tests/benchmarks/results/real_regions/NOTE.md``, stops 27-31).
 """
 
 from __future__ import annotations
@@ -66,8 +68,8 @@ AGREEMENT_MAX = 1.5
 AGREEMENT_PRIOR = 1.0
 # the correction's two bands, each checked on its own (:func:`_correction_bands`): the coarse
 # band is its Gaussian of this sigma (px at the correction's resolution: 8 px of pcb7's
-# frames), checked over windows of ``COARSE_WINDOW_PX``, whose nine times the samples bear a
-# larger amplitude
+# frames), checked over windows of ``COARSE_WINDOW_PX``; a window with nine times the fine
+# one's samples is trusted with a larger amplitude
 COARSE_SIGMA_PX = 2.0
 COARSE_WINDOW_PX = 6.0
 COARSE_MAX = 2.0
@@ -290,7 +292,8 @@ def restore_ends(
     """Add to ``result`` (in place), where each end frame is the sharpest and supports it
     (:func:`_frame_agreement`), what deconvolving ``average`` with that end depth's
     kernel adds to deconvolving it with ``stack_kernel`` (:func:`_reduced_correction`, at a
-    reduced resolution for frames of ``CORRECTION_SIDE_PX`` and more). Then, with
+    reduced resolution for frames of ``CORRECTION_SIDE_PX`` and more), its fine and coarse
+    bands each as far as the end frame shows it (:func:`_correction_bands`). Then, with
     ``read_frame(i, box)`` (that ``(rows, columns)`` box of frame ``i`` aligned at full
     resolution, in colour or as its :func:`mean_grey`, and where the frame covers it),
     keep there the end frame's own detail (:func:`keep_end_detail`), except where a frame
