@@ -38,6 +38,22 @@ def _band_std(image: np.ndarray, box=np.s_[16:-16, 16:-16]) -> float:
     return float(np.std((cv2.blur(g, (3, 3)) - cv2.blur(g, (9, 9)))[box]))
 
 
+def test_a_weight_above_one_takes_no_more_than_the_frames_band():
+    """The end correction may be scaled up past 1 where the end frame shows more of it
+    (``ends._frame_agreement``); the frame's own detail is still taken at most whole:
+    ``restore_ends`` passes that weight on, and 1.5 does what 1 does."""
+    truth = _texture(9)
+    frame = cv2.GaussianBlur(truth, (0, 0), 0.7)
+    result = cv2.GaussianBlur(truth, (0, 0), 2.5)
+    outs = []
+    for w in (1.0, 1.5):
+        out = result.copy()
+        keep_end_detail(out, frame, np.full(truth.shape, w, np.float32), noise=0.0)
+        outs.append(out)
+    np.testing.assert_array_equal(outs[0], outs[1])
+    assert _band_std(outs[1]) < 1.05 * _band_std(frame)
+
+
 @settings(max_examples=8, deadline=None)
 @given(seed=st.integers(0, 10_000), extra=st.floats(1.5, 3.0))
 @example(seed=7, extra=2.5)

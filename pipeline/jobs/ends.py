@@ -317,7 +317,7 @@ def restore_ends(
                 delta = cv2.resize(band, shape[::-1], interpolation=cv2.INTER_CUBIC)
                 delta = delta.reshape(result.shape)[box]
                 result[box] += (blend[box, :, None] if result.ndim == 3 else blend[box]) * delta
-        blends.append(np.minimum(kept[0], 1))  # the end frame's detail: where the fine is
+        blends.append(kept[0])  # the end frame's detail: where the fine band is kept
         total = max(float(np.sum(weight)), 1e-9)
         report.append(
             {
@@ -417,8 +417,9 @@ def keep_end_detail(result, frame, weight, noise) -> float:
     frame : ndarray, (rows, cols) or (rows, cols, 3)
         The end frame, aligned to ``result`` (only its grey image is read).
     weight : ndarray, (rows, cols)
-        0..1 per pixel: where the end frame is the sharpest and supports the correction
-        (:func:`restore_ends`); pixels below ``BLEND_FLOOR`` are left as they are.
+        0..1 per pixel (above 1 counts as 1): where the end frame is the sharpest and
+        supports the correction (:func:`restore_ends`); pixels below ``BLEND_FLOOR`` are
+        left as they are.
     noise : float
         The std of the frame's grey image's noise (``result``'s units).
 
@@ -459,7 +460,10 @@ def keep_end_detail(result, frame, weight, noise) -> float:
     end frame's check), the end-frames scene lost 0.46 dB: the frame's cut at the planes'
     edge, which the truth does not have.
     """
-    w = cv2.threshold(np.asarray(weight, np.float32), BLEND_FLOOR, 0, cv2.THRESH_TOZERO)[1]
+    # at most the frame's own band: a correction scaled up past 1 (:func:`_frame_agreement`)
+    # lends no more than the frame shows
+    w = np.clip(np.asarray(weight, np.float32), 0, 1)
+    w = cv2.threshold(w, BLEND_FLOOR, 0, cv2.THRESH_TOZERO)[1]
     image, own = mean_grey(result), mean_grey(np.asarray(frame, np.float32))
     # one common scale: nothing changes, and squares of frames in other units (1e38:
     # tests/test_ingestion.py) cannot overflow float32
