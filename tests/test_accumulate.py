@@ -153,6 +153,28 @@ def test_detail_sums_the_frames_grey_images_by_their_maps(tmp_path, channels):
     assert plain[5] is None
 
 
+def test_detail_warps_the_grey_frame_bicubically(tmp_path):
+    """A half-pixel shift: the composite's grey frame is interpolated with the cubic
+    convolution kernel (Keys, a = -0.75, OpenCV's), whose weights at half a pixel are
+    0.59375 for the two nearest samples and -0.09375 for the next two (from the kernel's
+    formula), not bilinearly (0.5 and 0.5)."""
+    rng = np.random.default_rng(8)
+    paths, decoded = _write(tmp_path, [rng.uniform(0.1, 0.9, (8, 12))])
+    shift = np.array([[1.0, 0, 0.5], [0, 1.0, 0], [0, 0, 1]])
+    ones = np.ones((8, 12), np.float32)
+    lends = SimpleNamespace(inner=[0], weight=lambda i: ones)
+    graph = weighted_sum_graph(paths, [shift], [1.0], (8, 12), detail=lends)
+    *_, (weighted, _) = dask.compute(graph, scheduler="sync")[0]
+    f = decoded[0]
+    a = -0.75
+    near = (a + 2) * 0.5**3 - (a + 3) * 0.5**2 + 1  # |s| = 0.5
+    far = a * 1.5**3 - 5 * a * 1.5**2 + 8 * a * 1.5 - 4 * a  # |s| = 1.5
+    assert near == pytest.approx(0.59375) and far == pytest.approx(-0.09375)
+    # the frame lands 0.5 px to the right: dst(x) = src(x - 0.5)
+    want = near * (f[:, 1:-2] + f[:, 2:-1]) + far * (f[:, :-3] + f[:, 3:])
+    np.testing.assert_allclose(weighted[:, 2:-1], want, atol=2e-4)
+
+
 def test_detail_warps_the_grey_frame_and_brings_the_map_to_the_frame_size(tmp_path):
     """A frame shifted by (1, 2) px with a map given at half size: its grey image lands
     shifted (bicubic, exact for whole pixels) and the map is resized to the frame."""
