@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import signal
 import socket
@@ -458,3 +459,32 @@ def test_frames_named_like_results_are_kept_when_they_are_the_frames(tmp_path):
     for name in FRAMES[:2]:
         shutil.copy(SAMPLE / name, tmp_path / name)
     assert len(load_stack(tmp_path)) == 4  # not a minority: kept
+
+
+def test_a_frame_overexposed_over_a_large_area_is_warned_about(tmp_path, caplog):
+    """One frame of nine clipped at white over its top 40% (an overexposed frame): the
+    result stays finite and the job warns, naming the share and what to do; the same stack
+    without it does not warn (the real stacks' clipped shares are 0-4%)."""
+    from skimage import data
+    from test_engine import make_stack, positions_for
+
+    from pipeline.core.colour import srgb_to_linear
+    from pipeline.io.write import write_image
+
+    sharp = srgb_to_linear(data.astronaut()[40:296, 130:386].astype(np.float32) / 255)
+    make_stack(tmp_path, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 9))
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        process_stack(tmp_path, tmp_path / "plain.tif", StackOptions(encoding="float32"))
+    assert "clipped (at white)" not in caplog.text
+    (tmp_path / "plain.tif").unlink()
+    (tmp_path / "plain.tif.json").unlink()
+    frame = read_frame(tmp_path / "frame_04.tif")
+    frame[: int(0.4 * frame.shape[0])] = 1.0
+    write_image(tmp_path / "frame_04.tif", frame, encoding="float32")
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        job = process_stack(tmp_path, tmp_path / "over.tif", StackOptions(encoding="float32"))
+    assert np.all(np.isfinite(job.image))
+    warned = [r.getMessage() for r in caplog.records if "clipped (at white)" in r.getMessage()]
+    assert len(warned) == 1 and re.search(r"\b4[0-3]% of the image", warned[0])  # 41% read
+    assert "leave the overexposed frames out" in warned[0]
