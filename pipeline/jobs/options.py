@@ -57,9 +57,9 @@ class StackOptions:
         if self.align not in ALIGN_MODES:
             raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
         if self.blur_span_px is not None:
-            validate.positive("blur_span_px", self.blur_span_px)
+            validate.positive("blur_span_px (--blur-span-px)", self.blur_span_px)
         if self.white is not None:
-            validate.positive("white", self.white)
+            validate.positive("white (--white)", self.white)
         validate.whole("max_pixels", self.max_pixels)
         validate.whole("tile_px", self.tile_px)
 
