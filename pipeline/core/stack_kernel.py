@@ -80,14 +80,18 @@ def focal_stack_psf(
 KERNEL_VARIANCE_SPREAD = 0.1  # Eq. 8 spread of per-depth kernels above which Wiener uses it
 
 
+MIN_BREATHING = 0.005  # the least span of magnifications read as focus breathing
+
+
 def positions_from_scales(scales: np.ndarray) -> tuple[np.ndarray, str]:
     """Focus coordinate from measured magnifications (``scale = p_i / p_ref``).
 
-    Used when they rise or fall steadily and span more than 0.5%; otherwise the
-    frames are taken as evenly spaced in focus (their index), the usual capture.
+    Used when they rise or fall steadily and span more than ``MIN_BREATHING`` (0.5%);
+    otherwise the frames are taken as evenly spaced in focus (their index), the usual
+    capture.
     """
     s = np.asarray(scales, dtype=np.float64)
-    if s.size >= 3 and np.ptp(s) > 0.005:
+    if s.size >= 3 and np.ptp(s) > MIN_BREATHING:
         steps = np.diff(s)
         if (
             np.all(steps > 0)

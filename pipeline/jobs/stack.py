@@ -26,6 +26,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus, multiframe
+from pipeline.core.focus_order import focus_order
 from pipeline.core.frame_support import (
     FrameSupport,
     clip_to_frames,
@@ -374,9 +375,11 @@ def align_stack(
     """Check the frames, find their focus positions and align them (Sec. 9).
 
     Positions come from stack.toml/EXIF; without them, from the measured
-    magnifications (:func:`positions_from_scales`). With ``fit_blur_span`` and no
-    absolute positions with a lens, the reduced grey copies are kept (the blur-span
-    fit uses them) even with ``--align`` other than ``estimate``.
+    magnifications (:func:`positions_from_scales`), and frames whose names are not in
+    focus order are put in it where their blur and magnification agree on it
+    (:func:`pipeline.core.focus_order.focus_order`; the returned stack holds them so).
+    With ``fit_blur_span`` and no absolute positions with a lens, the reduced grey copies
+    are kept (the blur-span fit uses them) even with ``--align`` other than ``estimate``.
     """
     shape = check_frames(stack).shape
     check_frame_size(stack, shape, options)
@@ -390,6 +393,11 @@ def align_stack(
         )
     progress("align", 0, 1)
     alignments = _align(stack, options, positions, absolute, previews, shape, lens)
+    if positions is None and previews is not None:
+        order = focus_order(previews, [a.scale for a in alignments])
+        if order is not None:  # aligned again: the chain matches focus neighbours
+            stack, previews = _reordered(stack, order), [previews[i] for i in order]
+            alignments = _align(stack, options, positions, absolute, previews, shape, lens)
     progress("align", 1, 1)
     timings = {"align": time.perf_counter() - t0}
     positions_source = stack.positions_source or "stack.toml"
@@ -549,6 +557,7 @@ def process_stack(
         progress=progress,
         fit_blur_span=options.blur_span_px is None,
     )
+    stack = aligned.stack  # in focus order
     needs_fit = options.blur_span_px is None and not (lens is not None and aligned.absolute)
     positions, timings = aligned.positions, aligned.timings
     weights = constant_speed_weights(positions, ends=options.sweep_ends)
@@ -731,6 +740,18 @@ def _stack_ipsf(
         )
     aligned.timings["kernel"] = time.perf_counter() - t0
     return kernel, samples, summary, beyond
+
+
+def _reordered(stack: Stack, order: list[int]) -> Stack:
+    """``stack`` with its frames in ``order`` (indices into its files' order), saying so."""
+    frames = tuple(stack.frames[i] for i in order)
+    log.warning(
+        "%s: the frames are not in focus order by name; their blur and magnification put them "
+        "in the order %s (name them in focus order, or give their positions in stack.toml)",
+        stack.base_dir,
+        ", ".join(f.file.name for f in frames),
+    )
+    return dataclasses.replace(stack, frames=frames)
 
 
 def _describe_frames(stack: Stack) -> str:
