@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from pipeline.core.focus_order import (
     REORDER_RATIO,
+    _two_opt,
     focus_distances,
     focus_maps,
     focus_order,
@@ -50,6 +51,18 @@ def test_the_shortest_path_through_points_on_a_line_is_their_sorted_order(xs):
     path = shortest_path(d)
     assert sorted(path) == list(range(x.size))
     assert path_length(d, path) == pytest.approx(np.ptp(x))
+    along = x[path]
+    assert np.all(np.diff(along) > 0) or np.all(np.diff(along) < 0)
+
+
+@given(st.permutations(list(range(9))), st.lists(st.integers(0, 50), min_size=9, max_size=9))
+@example([4, 0, 8, 2, 6, 1, 7, 3, 5], [5] * 9)
+def test_two_opt_straightens_any_path_along_a_line(start, gaps):
+    """From any starting path (not only the greedy one, which on a line is already sorted
+    from either end), reversing segments while that helps ends at the sorted order."""
+    x = np.cumsum(np.array(gaps, dtype=float) + 1.0)
+    d = np.abs(x[:, None] - x[None, :])
+    path = _two_opt(d, list(start))
     along = x[path]
     assert np.all(np.diff(along) > 0) or np.all(np.diff(along) < 0)
 

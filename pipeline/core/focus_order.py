@@ -6,9 +6,10 @@ without focus positions (a plain folder of frames, the commonest input) is taken
 files' natural name order, which is the focus order for a focus-bracketing capture, but not
 for frames renamed, merged from two runs, shot by hand in any order, or named by a camera
 whose counter wrapped (``IMG_9998``, ``IMG_9999``, ``IMG_0001``). A focus stacker that picks
-pixels (focus-stack, enfuse) does not care; this pipeline does: pcb7 given in a shuffled
-order scored 1/9 regions as good as focus-stack against 4/9 in order
-(``tests/benchmarks/results/real_regions/NOTE.md``, part 10).
+pixels (focus-stack, enfuse) does not care; this pipeline did: shuffled, pcb7, pcb10 and
+amber scored 0/9, 5/9 and 3/9 regions as good as focus-stack against 4/9, 8/9 and 8/9 in
+order, and score those again now
+(``tests/benchmarks/results/real_regions/frame_order.md``).
 
 Frames close in focus look alike: what is sharp in one is nearly as sharp in its
 neighbour, and the blur of every depth changes steadily from step to step. Each frame's
