@@ -67,6 +67,28 @@ def test_two_opt_straightens_any_path_along_a_line(start, gaps):
     assert np.all(np.diff(along) > 0) or np.all(np.diff(along) < 0)
 
 
+def brute_force_shortest(d: np.ndarray) -> float:
+    """The shortest open path's length, over every order."""
+    n = d.shape[0]
+    return min(path_length(d, p) for p in itertools.permutations(range(n)) if p[0] < p[-1])
+
+
+def test_the_path_matches_a_brute_force_search_on_points_in_a_plane():
+    """Seven random points in a plane (20 seeds): the path found is the shortest of all
+    2520 orders in at least 18, and within 5% in all. Seed 11 is one the greedy paths
+    alone miss by 14% (2.656 against 2.330)."""
+    optimal, worst = 0, 0.0
+    for seed in range(20):
+        x = np.random.default_rng(seed).random((7, 2))
+        d = np.hypot(*(x[:, None, :] - x[None, :, :]).transpose(2, 0, 1))
+        ratio = path_length(d, shortest_path(d)) / brute_force_shortest(d)
+        optimal += ratio < 1 + 1e-9
+        worst = max(worst, ratio)
+        if seed == 11:
+            assert ratio == pytest.approx(1.0)
+    assert optimal >= 18 and worst < 1.05
+
+
 def test_an_asymmetric_distance_between_two_frames_changes_the_path():
     """Four points on a line, but the middle two made far apart: the path must avoid that
     step (a path read from a copy of the matrix, or its transpose, would not)."""
@@ -156,7 +178,8 @@ def test_a_stack_of_planes_without_breathing_keeps_its_files_order(tmp_path, cap
 @pytest.mark.shared_data
 def test_the_job_on_pcb7_named_out_of_order_matches_the_job_in_order(shared_data, tmp_path, caplog):
     """pcb7's frames linked under shuffled names: the job warns, naming the order it found,
-    processes them in focus order and writes the result of the stack named in order."""
+    processes them in focus order and writes the result of the stack named in order (its
+    end frames, as the sidecar names them, the same frames)."""
     files = sorted(shared_data.glob(STACKS["pcb7"]))
     perm = [3, 0, 5, 1, 6, 2, 4]
     mixed = tmp_path / "mixed"
@@ -175,5 +198,7 @@ def test_the_job_on_pcb7_named_out_of_order_matches_the_job_in_order(shared_data
     linked = {files[i].name: f"img_{k}.jpg" for k, i in enumerate(perm)}
     assert ", ".join(linked[u] for u in used) in warned[0]
     assert job.sidecar["kernel"]["size"] == in_order.sidecar["kernel"]["size"]
+    ends = [e["frame"] for e in job.sidecar["frame_range"]["beyond_ends"]]
+    assert ends == [linked[e["frame"]] for e in in_order.sidecar["frame_range"]["beyond_ends"]]
     diff = np.abs(job.image - in_order.image)
     assert float(np.mean(diff)) < 1e-3 * float(np.mean(in_order.image))
