@@ -488,3 +488,68 @@ def test_a_frame_overexposed_over_a_large_area_is_warned_about(tmp_path, caplog)
     warned = [r.getMessage() for r in caplog.records if "clipped (at white)" in r.getMessage()]
     assert len(warned) == 1 and re.search(r"\b4[0-3]% of the image", warned[0])  # 41% read
     assert "leave the overexposed frames out" in warned[0]
+
+
+# --- blank frames (a misfire, the lens cap, a black or white frame) --------------------------
+BEETLE = ["DSC_0356.jpg", "DSC_0361.jpg", "DSC_0367.jpg"]
+
+
+@pytest.mark.shared_data
+@pytest.mark.parametrize("level", [0, 255])
+def test_a_blank_frame_is_left_out_and_the_result_is_the_stack_without_it(
+    shared_data, tmp_path, caplog, level
+):
+    """Three of beetle's frames with a black (or white) JPEG among them, named in focus
+    order: the blank frame is left out with a warning naming it, the sidecar lists it, and
+    the result is the three frames' own, bit for bit. Kept, a black frame made the blur-span
+    fit read 400 px (the search's end) and the result rang over the whole image."""
+    plain, mixed = tmp_path / "plain", tmp_path / "mixed"
+    plain.mkdir(), mixed.mkdir()
+    for i, name in enumerate(BEETLE):
+        for folder in (plain, mixed):
+            shutil.copy(shared_data / "chimpstackr-beetle" / name, folder / f"f{2 * i}.jpg")
+    shape = cv2.imread(str(plain / "f0.jpg")).shape
+    cv2.imwrite(str(mixed / "f1.jpg"), np.full(shape, level, np.uint8))
+    expected = process_stack(plain, tmp_path / "plain.tif")
+    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
+        job = process_stack(mixed, tmp_path / "mixed.tif")
+    assert job.sidecar["left_out"] == ["f1.jpg"]
+    assert [f["file"] for f in job.sidecar["frames"]] == ["f0.jpg", "f2.jpg", "f4.jpg"]
+    (warned,) = [r.getMessage() for r in caplog.records if "left out" in r.getMessage()]
+    assert "f1.jpg" in warned and "blank" in warned
+    assert expected.sidecar["left_out"] == []
+    np.testing.assert_array_equal(job.image, expected.image)
+
+
+@pytest.mark.shared_data
+def test_a_frame_defocused_far_beyond_the_subject_is_not_blank(shared_data):
+    """Defocus takes a frame's fine detail, not its contrast: beetle's frames, one of them
+    blurred by a Gaussian of 40 px (far more than any frame of the stack), are all content;
+    a black, a white, a flat grey and a sensor-noise-only frame are blank; a stack whose
+    every frame is flat has nothing to compare with and keeps them all."""
+    from pipeline.jobs.stack import blank_frames
+
+    previews = [
+        read_preview(shared_data / "chimpstackr-beetle" / name, 768) for name in BEETLE
+    ]
+    defocused = cv2.GaussianBlur(previews[0], (0, 0), 40 * 768 / 750)
+    rng = np.random.default_rng(3)
+    noise = np.abs(rng.normal(0.0, 2e-4, previews[0].shape)).astype(np.float32)
+    blanks = [np.zeros_like(defocused), np.ones_like(defocused), np.full_like(defocused, 0.2)]
+    assert blank_frames([*previews, defocused]) == []
+    assert blank_frames([*previews, defocused, *blanks, noise]) == [4, 5, 6, 7]
+    assert blank_frames(blanks) == []
+
+
+def test_a_stack_left_with_one_frame_once_blanks_are_out_is_refused(tmp_path, capsys):
+    """Two frames, one black: one line names the blank frame and says what to do."""
+    from pipeline.cli import main
+
+    shutil.copy(SAMPLE / FRAMES[0], tmp_path / "a.png")
+    shape = cv2.imread(str(SAMPLE / FRAMES[0])).shape
+    cv2.imwrite(str(tmp_path / "b.png"), np.zeros(shape, np.uint8))
+    assert main(["stack", str(tmp_path), "-o", str(tmp_path / "out.tif")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "b.png" in err and "blank" in err and "fewer than two frames" in err
+    assert not (tmp_path / "out.tif").exists()

@@ -372,6 +372,7 @@ def estimate_alignment(
     min_correlation: float = 0.5,
     fallback: Sequence[Alignment] | None = None,
     workers: int = 1,
+    names: Sequence[str] | None = None,
 ) -> list[Alignment]:
     """Homographies that map every frame of a focal stack onto the reference frame (Sec. 9).
 
@@ -407,6 +408,8 @@ def estimate_alignment(
     workers : int
         Threads matching frame pairs (OpenCV releases the GIL). The pairs a chain
         will need are matched ahead, in parallel; the result does not depend on it.
+    names : sequence of str, optional
+        What to call each frame in messages (e.g. its file name); default ``frame i``.
 
     Returns
     -------
@@ -435,6 +438,9 @@ def estimate_alignment(
         raise InputError(f"reference must be a frame index in 0..{n - 1}, got {reference!r}")
     if fallback is not None and len(fallback) != n:
         raise InputError(f"fallback must have one Alignment per frame ({n}), got {len(fallback)}")
+    if names is not None and len(names) != n:
+        raise InputError(f"names must have one name per frame ({n}), got {len(names)}")
+    label = [f"frame {i}" for i in range(n)] if names is None else [str(v) for v in names]
 
     full_shape: tuple[int, int] | None = None
     pyramids = []
@@ -466,9 +472,9 @@ def estimate_alignment(
         """Warp frame i -> frame j (reduced coordinates), its correlation and the method."""
         ti, tj = pyramids[i], pyramids[j]
         if _is_textureless(ti[-1]):
-            raise _EstimationError(f"frame {i} has no texture to match")
+            raise _EstimationError(f"{label[i]} has no texture to match")
         if _is_textureless(tj[-1]):
-            raise _EstimationError(f"frame {j} has no texture to match")
+            raise _EstimationError(f"{label[j]} has no texture to match")
         candidates: list[tuple[float, np.ndarray, str]] = []
         reasons = []
         if method in ("auto", "ecc"):
@@ -521,11 +527,11 @@ def estimate_alignment(
                         raise _EstimationError(f"composed transform: {why}")
                 except _EstimationError as err:
                     base = fallback[i] if fallback is not None else out[anchor]
-                    hint = "the given fallback" if fallback is not None else f"frame {anchor}'s"
+                    hint = "the given fallback" if fallback is not None else f"{label[anchor]}'s"
                     logger.warning(
-                        "alignment of frame %d to frame %d failed (%s); using %s transform",
-                        i,
-                        anchor,
+                        "alignment of %s to %s failed (%s); using %s transform",
+                        label[i],
+                        label[anchor],
                         err,
                         hint,
                     )

@@ -135,6 +135,7 @@ def estimate_blur_span(
     *,
     downscale: float = 1.0,
     max_span_px: float = 400.0,
+    warn: bool = True,
 ) -> float:
     """Blur span ``D`` (px at full resolution) of an aligned focal stack.
 
@@ -148,6 +149,9 @@ def estimate_blur_span(
         Full-resolution size / the frames' size; the result is in full-res px.
     max_span_px : float
         Upper end of the search.
+    warn : bool
+        Log a warning when the fit lands at an end of the search (False for a fit whose
+        caller fits again, e.g. the alignment's check, so that the user is told once).
 
     Returns
     -------
@@ -179,7 +183,7 @@ def estimate_blur_span(
 
     grid = np.geomspace(2.0, max_span_px, 14)
     estimate, k = _best_on_grid(cost, grid)
-    if k in (0, grid.size - 1):
+    if warn and k in (0, grid.size - 1):
         log.warning("blur span at the edge of the search (%.1f px); check the stack", estimate)
     return estimate
 

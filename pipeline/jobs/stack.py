@@ -82,6 +82,12 @@ CHOICE_MARGIN_FITTED = 0.0
 # overshoots is clipped to the frames' range (pipeline.core.frame_support).
 FITTED_SPAN_SCALE = 2.0
 MIN_FRAME_SIDE_PX = 8  # smaller frames hold no usable detail (and no room for a kernel)
+# A frame whose contrast (1st to 99th percentile of its reduced grey copy) is below this share
+# of the stack's median is blank (a misfire, the lens cap, a black or white frame) and left
+# out: kept, one black frame in four of beetle's made the blur-span fit read 400 px and the
+# result rang over the whole image. A frame defocused far beyond the subject keeps its
+# coarse contrast (a blur conserves the mean): beetle's frames read 0.96-1.04 of the median.
+BLANK_CONTRAST = 0.02
 COVERED = 0.999  # a warped frame's pixels with this much coverage are its own (not edge fill)
 
 
@@ -202,6 +208,54 @@ def check_blur_span(stack: Stack, span: float, shape: tuple[int, ...], source: s
             f"{stack.base_dir}: {source} gives a blur span of {span:.4g} px, more than the "
             f"frames' diagonal ({diagonal:.0f} px); check it"
         )
+
+
+def blank_frames(previews: Sequence[np.ndarray]) -> list[int]:
+    """Indices of the frames whose contrast is below ``BLANK_CONTRAST`` of the stack's median.
+
+    The contrast is the spread between the 1st and 99th percentiles of a frame's reduced
+    grey copy: defocus lowers a frame's fine detail, not that spread, so only a frame that
+    shows (next to) nothing reads far below the others. None when the stack's median is 0
+    (every frame flat: nothing to compare with).
+    """
+    spread = [
+        float(np.subtract(*np.percentile(p[::2, ::2], [99, 1]))) if p.size else 0.0
+        for p in previews
+    ]
+    typical = float(np.median(spread)) if spread else 0.0
+    if typical <= 0:
+        return []
+    return [i for i, s in enumerate(spread) if s < BLANK_CONTRAST * typical]
+
+
+def leave_out_blank(stack: Stack, previews: list[np.ndarray], positions: np.ndarray | None):
+    """``stack``, ``previews`` and ``positions`` without the blank frames
+    (:func:`blank_frames`), and the names of those left out (each warned about); an error
+    when fewer than two frames are left."""
+    blank = blank_frames(previews)
+    if not blank:
+        return stack, previews, positions, ()
+    names = tuple(stack.files[i].name for i in blank)
+    keep = [i for i in range(len(stack)) if i not in set(blank)]
+    if len(keep) < 2:
+        raise InputError(
+            f"{_describe_frames(stack)}: {', '.join(names)} "
+            f"{'shows' if len(names) == 1 else 'show'} no image (blank: black, white or flat), "
+            "which leaves fewer than two frames; reshoot or replace the blank frames"
+        )
+    log.warning(
+        "%s: %s left out of the stack: blank (no image content beside the other frames: a "
+        "misfire, the lens cap, a black or white frame)",
+        _describe_frames(stack),
+        ", ".join(names),
+    )
+    stack = dataclasses.replace(stack, frames=tuple(stack.frames[i] for i in keep))
+    return (
+        stack,
+        [previews[i] for i in keep],
+        None if positions is None else positions[keep],
+        names,
+    )
 
 
 # ----------------------------------------------------------------------------- positions
@@ -351,6 +405,7 @@ class AlignedStack:
     previews: list[np.ndarray] | None
     timings: dict[str, float]
     start: float
+    left_out: tuple[str, ...] = ()  # blank frames' file names (:func:`leave_out_blank`)
 
 
 def load(paths, options: StackOptions) -> tuple[Stack, Lens | None, float]:
@@ -380,17 +435,20 @@ def align_stack(
     (:func:`pipeline.core.focus_order.focus_order`; the returned stack holds them so).
     With ``fit_blur_span`` and no absolute positions with a lens, the reduced grey copies
     are kept (the blur-span fit uses them) even with ``--align`` other than ``estimate``.
+    Where the reduced copies are read, blank frames are left out (:func:`leave_out_blank`;
+    ``--align none`` or ``analytic`` with a lens and absolute positions read none).
     """
     shape = check_frames(stack).shape
     check_frame_size(stack, shape, options)
     check_lens_size(stack, lens, shape)
     positions, absolute = _sidecar_positions(stack, lens)
     t0 = time.perf_counter()
-    previews = None
+    previews, left_out = None, ()
     if options.align == "estimate" or (fit_blur_span and not (lens is not None and absolute)):
         previews = read_previews(
             stack.files, options.align_max_side_px, progress, white=stack.white
         )
+        stack, previews, positions, left_out = leave_out_blank(stack, previews, positions)
     progress("align", 0, 1)
     alignments = _align(stack, options, positions, absolute, previews, shape, lens)
     if positions is None and previews is not None:
@@ -415,6 +473,7 @@ def align_stack(
         previews,
         timings,
         start,
+        left_out,
     )
 
 
@@ -490,6 +549,7 @@ def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, optio
         "positions_source": aligned.positions_source,
         "frames": frames_meta,
         "partial_stack": aligned.stack.partial,
+        "left_out": list(aligned.left_out),
         "white": aligned.stack.white,
     }
 
@@ -773,15 +833,18 @@ def _align(stack, options, positions, absolute, previews, shape, lens=None):
                 "(image or focus distances in stack.toml); use --align estimate"
             )
         return align.analytic_alignment(positions, shape)
-    estimated = align.estimate_alignment(
-        previews, max_side_px=options.align_max_side_px, workers=local_workers()
+    estimated = align.estimate_alignment(  # warns of each fallback, naming the files
+        previews,
+        max_side_px=options.align_max_side_px,
+        workers=local_workers(),
+        names=[path.name for path in stack.files],
     )
-    alignments = []
-    for path, a in zip(stack.files, estimated):
-        if not a.ok:
-            log.warning("frame %s: alignment fell back (%s)", path.name, a.message)
-        h = align.rescale_homography(a.homography, previews[0].shape, shape[:2])
-        alignments.append(dataclasses.replace(a, homography=h))
+    alignments = [
+        dataclasses.replace(
+            a, homography=align.rescale_homography(a.homography, previews[0].shape, shape[:2])
+        )
+        for a in estimated
+    ]
     if n < 3:
         return alignments
     if positions is None:  # the frames' order as their focus steps (the usual capture)
@@ -798,8 +861,8 @@ def _choice_span(frames, positions, factor: float, shape) -> float | None:
     where nothing can be fitted (no textured, in-focus regions)."""
     max_span = min(400.0, float(np.hypot(*shape[:2])))
     try:
-        return defocus.estimate_blur_span(
-            list(frames), positions, downscale=factor, max_span_px=max_span
+        return defocus.estimate_blur_span(  # the kernel's fit warns, if it must
+            list(frames), positions, downscale=factor, max_span_px=max_span, warn=False
         )
     except InputError:
         return None
