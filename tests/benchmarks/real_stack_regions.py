@@ -1,7 +1,8 @@
 """Real stacks, region by region: flexdof against focus-stack, enfuse and the sharpest frame.
 
     python tests/benchmarks/real_stack_regions.py [--stacks pcb7,beetle] \
-        [--flexdof-args "--method wiener"] [--result pcb7=out.tif] [--out DIR] [--work DIR]
+        [--flexdof-args "--method wiener"] [--result pcb7=out.tif] [--out DIR] [--work DIR] \
+        [--focus-stack PATH]
 
 For each stack: runs ``flexdof stack`` as a user would (or takes ``--result
 NAME=FILE``, whose ``FILE.json`` sidecar must sit next to it), warps every frame
@@ -10,9 +11,11 @@ results to that geometry (SIFT + RANSAC homography refined by ECC against a
 focus-selected composite of those frames; focus-stack crops and rescales its
 output), splits the common area into a 3x3 grid and
 measures per region sharpness, halo, haze and noise (see ``region_measures.py``
-for what they are and why they cannot be gamed) of flexdof, focus-stack,
-enfuse (``align_image_stack -m`` + ``enfuse --contrast-weight=1 --hard-mask``,
-when installed; cached in ``DIR/work``), the region's sharpest aligned frame and
+for what they are and why they cannot be gamed) of flexdof, focus-stack (and, given
+``--focus-stack PATH``, focus-stack with the frames' photometry as shot: its contrast and
+white-balance matching off, see :func:`run_focus_stack`), enfuse (``align_image_stack
+-m`` + ``enfuse --contrast-weight=1 --hard-mask``, when installed; cached in
+``DIR/work``), the region's sharpest aligned frame and
 the frames' composite (per pixel the aligned frame with the most Laplacian energy: a plain
 focus stacker made of the frames' own pixels; the summary counts the regions where it is at
 least as good as focus-stack on haze, a check of how far that measure rewards more than the
@@ -72,6 +75,8 @@ ENFUSE_ARGS = [
     "--hard-mask",
     "--contrast-window-size=9",
 ]
+AS_SHOT = ["--no-contrast", "--no-whitebalance"]  # focus-stack without its photometric match
+AS_SHOT_PEER = "focus-stack as shot"
 CROP_PX = 192
 PNG = [cv2.IMWRITE_PNG_COMPRESSION, 9]
 
@@ -169,17 +174,29 @@ def run_flexdof(name: str, pattern: str, work: Path, extra: list[str]) -> Path:
     return out
 
 
-def run_focus_stack(name: str, pattern: str, work: Path, binary: str | None) -> Path | None:
+def run_focus_stack(
+    name: str, pattern: str, work: Path, binary: str | None, *, as_shot: bool = False
+) -> Path | None:
     """focus-stack's result: the shared one for the four stacks (made as in its
-    SOURCE.txt), else made here with ``binary`` the same way and cached; None without."""
+    SOURCE.txt), else made here with ``binary`` the same way and cached; None without.
+
+    ``as_shot``: run with ``AS_SHOT`` (the frames' photometry as shot: no contrast and
+    white-balance matching), made here only (needs ``binary``). focus-stack matches every
+    frame's brightness to the middle frame's with a quadratic gain map over the image and
+    a gain and offset per channel, fitted on 64x64 block means of the 8-bit sRGB frames
+    (``task_align.cc``, ``match_contrast``, ``match_whitebalance``). In sRGB, a block holding
+    a sharp highlight reads darker than the same block defocused (the encoding is concave),
+    so the match lifts each frame where it is the sharpest: a contrast stretch that the
+    truth itself loses to on haze (``regions_vs_truth.py``)."""
     shared = FOCUS_STACK / f"{name}.png"
-    if shared.exists():
+    if shared.exists() and not as_shot:
         return shared
-    out = work / f"{name}_focus-stack.png"
+    out = work / f"{name}_focus-stack{'-as-shot' if as_shot else ''}.png"
     if out.exists() or binary is None:
         return out if out.exists() else None
     files = sorted(glob.glob(str(SHARED / pattern)))
-    subprocess.run([binary, f"--output={out}", *files], check=True, capture_output=True)
+    flags = AS_SHOT if as_shot else []
+    subprocess.run([binary, *flags, f"--output={out}", *files], check=True, capture_output=True)
     return out
 
 
@@ -286,6 +303,7 @@ def evaluate(
     composite = np.take_along_axis(np.stack(frames), choice[None, ..., None], axis=0)[0]
     peers = {
         "focus-stack": run_focus_stack(name, pattern, work, focus_stack),
+        AS_SHOT_PEER: run_focus_stack(name, pattern, work, focus_stack, as_shot=True),
         "enfuse": run_enfuse(name, pattern, work),
         **(extra or {}),
     }
@@ -412,9 +430,9 @@ def report(results: dict, args) -> str:
         "(ties within " + ", ".join(f"{m} {a:g}/{r:.0%}" for m, (a, r) in TIES.items()) + ").",
         "",
         "| stack | blur span px | regions flexdof >= focus-stack on all 4 | "
-        "... >= enfuse | sharpness wins/ties/losses | halo | haze | noise | "
-        "frame composite: haze >= focus-stack |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "... >= focus-stack as shot | ... >= enfuse | sharpness wins/ties/losses | halo | "
+        "haze | noise | frame composite: haze >= focus-stack |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, res in results.items():
         s = res["scores"]
@@ -428,10 +446,11 @@ def report(results: dict, args) -> str:
             counts.append(f"{v.count('win')}/{v.count('tie')}/{v.count('loss')}")
         a, n = good_regions(s)
         e, ne = good_regions(s, "enfuse")
+        h, nh = good_regions(s, AS_SHOT_PEER)
         span = res["blur_span_px"]
         ceiling = _haze_at_least_as_good(s, "frame composite")
         lines.append(
-            f"| {name} | {span:.1f} | **{a}/{n}** | {e}/{ne} | "
+            f"| {name} | {span:.1f} | **{a}/{n}** | {h}/{nh} | {e}/{ne} | "
             + " | ".join(counts)
             + f" | {ceiling}/{n} |"
         )
@@ -453,6 +472,7 @@ def report(results: dict, args) -> str:
                 "flexdof",
                 "multiframe",
                 "focus-stack",
+                AS_SHOT_PEER,
                 "enfuse",
                 "truth",
                 "sharpest frame",
@@ -517,8 +537,9 @@ def main() -> int:
     parser.add_argument(
         "--focus-stack",
         metavar="PATH",
-        help="the focus-stack binary, for the peer result of stacks given with --stack "
-        "(bash ../shared/tools/build-focus-stack.sh prints it)",
+        help="the focus-stack binary, for the peer result of stacks given with --stack and "
+        "for its result with the frames' photometry as shot, on every stack (bash "
+        "../shared/tools/build-focus-stack.sh prints it)",
     )
     args = parser.parse_args()
     stacks = {**STACKS, **dict(item.split("=", 1) for item in args.stack)}

@@ -52,6 +52,7 @@ sys.path.insert(0, str(TESTS.parent))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from real_stack_regions import (  # noqa: E402
+    AS_SHOT_PEER,
     evaluate,
     good_regions,
     output_folders,
@@ -186,26 +187,37 @@ def summary(results: dict) -> list[str]:
     focus-stack per measure, and PSNR against the truth."""
     lines = [
         "| scene | blur span px: true | fitted | regions >= focus-stack on all 4: flexdof | "
-        "the truth | the truth's losses to focus-stack (sharpness/halo/haze/noise) | PSNR "
-        "against the truth: flexdof | flexdof --method multiframe | focus-stack | enfuse |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "the truth | the truth's losses to focus-stack (sharpness/halo/haze/noise) | the "
+        "same against focus-stack as shot: flexdof | the truth | the truth's losses | PSNR "
+        "against the truth: flexdof | flexdof --method multiframe | focus-stack | "
+        "focus-stack as shot | enfuse |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, res in results.items():
         s = res["scores"]
-        losses = [
-            sum(verdict(m, s["truth"][m][r], s["focus-stack"][m][r]) == "loss" for r in range(9))
-            for m in MEASURES
-        ]
         psnr = res["psnr_against"]["truth"]
         true, fitted = res["true_span_px"], res["blur_span_px"]
+        cells = []
+        for peer in ("focus-stack", AS_SHOT_PEER):
+            if peer not in s:
+                cells += ["-", "-", "-"]
+                continue
+            losses = [
+                sum(verdict(m, s["truth"][m][r], s[peer][m][r]) == "loss" for r in range(9))
+                for m in MEASURES
+            ]
+            cells += [
+                f"{good_regions(s, peer)[0]}/9",
+                f"{good_regions(s, peer, method='truth')[0]}/9",
+                "/".join(map(str, losses)),
+            ]
         lines.append(
             f"| {name} | {true:.1f} | {fitted:.1f} ({fitted / true - 1:+.0%}) | "
-            f"{good_regions(s)[0]}/9 | {good_regions(s, method='truth')[0]}/9 | "
-            + "/".join(map(str, losses))
+            + " | ".join(cells)
             + " | "
             + " | ".join(
                 f"{psnr[k]:.2f}" if k in psnr else "-"
-                for k in ("flexdof", "multiframe", "focus-stack", "enfuse")
+                for k in ("flexdof", "multiframe", "focus-stack", AS_SHOT_PEER, "enfuse")
             )
             + " |"
         )
