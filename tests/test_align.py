@@ -350,6 +350,21 @@ def test_lazy_frames_are_loaded_once(scene):
 # --- estimation: hard cases ---------------------------------------------------------------------
 
 
+def test_a_fallback_is_warned_once_with_the_frames_names(scene, caplog):
+    """Given names (the job passes the file names), the one warning of a fallback uses them,
+    and the failed frame's message names it too."""
+    good = [render(scene, similarity(s, 0, (0, 0), CENTRE), FRAME, OFFSET) for s in (1.02, 1.0)]
+    flat = np.full(FRAME, 0.25, np.float32)
+    names = ["a.jpg", "b.jpg", "c.jpg"]
+    with caplog.at_level(logging.WARNING, logger="pipeline.core.align"):
+        al = estimate_alignment([good[0], good[1], flat], reference=1, names=names)
+    (warned,) = [r.getMessage() for r in caplog.records]
+    assert warned.startswith("alignment of c.jpg to b.jpg failed (c.jpg has no texture")
+    assert warned.endswith("using b.jpg's transform") and al[2].message.startswith("c.jpg")
+    with pytest.raises(InputError, match="names must have one name per frame"):
+        estimate_alignment(good, names=["a.jpg"])
+
+
 def test_textureless_frame_falls_back(scene, caplog):
     good = [render(scene, similarity(s, 0, (0, 0), CENTRE), FRAME, OFFSET) for s in (1.02, 1.0)]
     flat = np.full(FRAME, 0.25, np.float32)
