@@ -555,18 +555,23 @@ def test_a_stack_left_with_one_frame_once_blanks_are_out_is_refused(tmp_path, ca
     assert not (tmp_path / "out.tif").exists()
 
 
-def test_a_blank_frame_leaves_with_its_focus_position(sample, caplog):
+def test_a_blank_frame_leaves_with_its_focus_position(sample, capsys):
     """The shipped sample (stack.toml gives each frame's image distance) with frame 3
-    overwritten by a black frame: the other seven keep their own positions from stack.toml."""
+    overwritten by a black frame, through the CLI: the other seven keep their own positions
+    from stack.toml, and the --json summary names the frame left out."""
     import tomllib
+
+    from pipeline.cli import main
 
     listed = tomllib.loads((sample / "stack.toml").read_text())["frames"]
     expected = {f["file"]: f["image_distance_mm"] for f in listed if f["file"] != FRAMES[3]}
     shape = cv2.imread(str(sample / FRAMES[3])).shape
     cv2.imwrite(str(sample / FRAMES[3]), np.zeros(shape, np.uint8))
-    with caplog.at_level(logging.WARNING, logger="pipeline.jobs.stack"):
-        job = process_stack(sample, sample.parent / "out.tif")
-    assert job.sidecar["left_out"] == [FRAMES[3]]
-    got = {f["file"]: f["image_distance_mm"] for f in job.sidecar["frames"]}
+    out = sample.parent / "out.tif"
+    assert main(["stack", str(sample), "-o", str(out), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["left_out"] == [FRAMES[3]] and summary["frames"] == 7
+    sidecar = json.loads(Path(f"{out}.json").read_text())
+    assert sidecar["left_out"] == [FRAMES[3]]
+    got = {f["file"]: f["image_distance_mm"] for f in sidecar["frames"]}
     assert got == pytest.approx(expected)
-    assert np.all(np.isfinite(job.image))

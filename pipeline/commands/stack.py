@@ -50,6 +50,7 @@ def run(args: argparse.Namespace) -> int:
                 "output": str(result.output),
                 "sidecar": f"{result.output}.json",
                 "frames": len(result.sidecar.get("frames", [])),
+                "left_out": result.sidecar.get("left_out", []),
                 "method": options.method,
                 "kernel": {"source": kernel["source"], "size": kernel["size"]},
                 "timings_s": timings,
