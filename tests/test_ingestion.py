@@ -523,8 +523,9 @@ def test_a_blank_frame_is_left_out_and_the_result_is_the_stack_without_it(
 
 @pytest.mark.shared_data
 def test_a_frame_defocused_far_beyond_the_subject_is_not_blank(shared_data):
-    """Defocus takes a frame's fine detail, not its contrast: beetle's frames, one of them
-    blurred by a Gaussian of 40 px (far more than any frame of the stack), are all content;
+    """Defocus takes a frame's fine detail far more than its contrast: beetle's frames, one of
+    them blurred by a Gaussian of 40 px (far more than any frame of the stack; it keeps 0.43
+    of the stack's median spread), are all content;
     a black, a white, a flat grey and a sensor-noise-only frame are blank; a stack whose
     every frame is flat has nothing to compare with and keeps them all."""
     from pipeline.jobs.stack import blank_frames
@@ -575,3 +576,17 @@ def test_a_blank_frame_leaves_with_its_focus_position(sample, capsys):
     assert sidecar["left_out"] == [FRAMES[3]]
     got = {f["file"]: f["image_distance_mm"] for f in sidecar["frames"]}
     assert got == pytest.approx(expected)
+
+
+def test_flexible_dof_leaves_a_blank_frame_out_too(sample, capsys):
+    """flexdof dof shares the stack's alignment: with frame 3 of the sample black it uses the
+    other seven (before, the weights of seven frames met a count of eight: an internal error)."""
+    from pipeline.cli import main
+
+    shape = cv2.imread(str(sample / FRAMES[3])).shape
+    cv2.imwrite(str(sample / FRAMES[3]), np.zeros(shape, np.uint8))
+    out = sample.parent / "dof.tif"
+    assert main(["dof", str(sample), "-o", str(out), "--in-focus", "450:600", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["left_out"] == [FRAMES[3]] and summary["frames"] == 7
+    assert 0 < summary["frames_used"] <= 7

@@ -73,6 +73,7 @@ def run(args: argparse.Namespace) -> int:
         "target": target.kind,
         "frames_used": dof["frames_used"],
         "frames": len(result.sidecar["frames"]),
+        "left_out": result.sidecar["left_out"],
     }
     if args.json:
         print_json(summary)

@@ -227,6 +227,7 @@ def process_dof(
             f"{stack.base_dir}: no lens profile: set lens in stack.toml or pass --lens"
         )
     aligned = align_stack(stack, lens, options, start, progress=progress)
+    stack = aligned.stack  # in focus order, without blank frames
     if not aligned.absolute:
         raise InputError(
             f"{stack.base_dir}: flexdof dof needs each frame's absolute focus position "
