@@ -1,0 +1,178 @@
+"""Glow round clipped highlights on the real stacks: flexdof (as run, and with
+``--variant`` flags) against focus-stack and the frames.
+
+    python tests/benchmarks/highlight_glow.py [--stacks pcb7,pcb10] [--out DIR] \
+        [--work DIR] [--top N] [--variant "--frame-guard"]...
+
+For each stack: runs ``flexdof stack`` (and once per ``--variant``, with those flags),
+warps the frames into the result's geometry with the sidecar's homographies, registers
+focus-stack's shared result to it (``real_stack_regions.register``), and finds the
+highlights: sets of pixels clipped (8-bit 255 in some channel) in some frame, with a
+frame that clips none of them within the blur's reach (else no frame shows their
+light, and nothing can be put back). For the ``--top`` largest it measures, in linear
+light (green channel), over the ring 3-20 px from the clipped pixels:
+
+* **glow**: the mean of the image minus the frames' per-pixel minimum there. A defocused
+  frame adds its highlight's disk to the ring, so the minimum over the frames is the
+  ring without the highlight's light, what the frame focused there shows (below);
+* the same of the **sharpest frame** (the frame whose ring is darkest: the one that
+  spreads least light into it), the level a faithful result matches.
+
+A result cannot pass by darkening: the frame-range clip keeps every non-clipped pixel
+within the frames' range, so the glow cannot go below 0, and the sharpest frame's own
+figure is printed beside it. Writes ``DIR/highlight_glow.md``, ``DIR/highlight_glow.json``
+and ``DIR/NAME_glow.png`` (four of the largest highlights: flexdof | each variant |
+focus-stack | sharpest frame, 3x nearest-neighbour).
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import shlex
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from real_stack_regions import FOCUS_STACK, read_srgb, register, warp
+from real_stacks import SHARED, STACKS
+
+RING_PX = (3.0, 20.0)
+CROP_HALF = 50
+
+
+def linear(srgb: np.ndarray) -> np.ndarray:
+    v = srgb / 255.0
+    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+
+
+def run(name: str, pattern: str, work: Path, extra: list[str], tag: str) -> Path:
+    out = work / f"{name}_{tag}.tif"
+    files = sorted(glob.glob(str(SHARED / pattern)))
+    subprocess.run(["flexdof", "stack", *files, "-o", str(out), *extra], check=True)
+    return out
+
+
+def highlights(frames: list[np.ndarray], reach: int) -> list[np.ndarray]:
+    """Masks of the clipped sets that some frame leaves unclipped within ``reach``,
+    largest first."""
+    clipped = [f.max(axis=2) >= 255 for f in frames]
+    union = np.logical_or.reduce(clipped).astype(np.uint8)
+    count, labels, stats, _ = cv2.connectedComponentsWithStats(union, connectivity=8)
+    kernel = np.ones((2 * reach + 1,) * 2, np.uint8)
+    found = []
+    for label in np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1:
+        mask = labels == label
+        near = cv2.dilate(mask.astype(np.uint8), kernel) > 0
+        if any(not c[near].any() for c in clipped):
+            found.append(mask)
+    return found
+
+
+def glow(image: np.ndarray, floor: np.ndarray, ring: np.ndarray) -> float:
+    return float(np.mean(image[ring] - floor[ring]))
+
+
+def measure(
+    name: str, pattern: str, work: Path, out: Path, top: int, variants: list[str]
+) -> list[dict]:
+    default = run(name, pattern, work, [], "default")
+    meta = json.loads(Path(f"{default}.json").read_text())
+    base = Path(sorted(glob.glob(str(SHARED / pattern)))[0]).parent
+    results = {"flexdof": read_srgb(default)}
+    for number, flags in enumerate(variants, 1):
+        made = run(name, pattern, work, shlex.split(flags), f"variant{number}")
+        results[f"flexdof {flags}"] = read_srgb(made)
+    shape = results["flexdof"].shape
+    frames, cover = [], np.ones(shape[:2], bool)
+    for entry in meta["frames"]:
+        frame, covered = warp(read_srgb(base / entry["file"]), np.array(entry["homography"]), shape)
+        frames.append(frame)
+        cover &= covered
+    peer = FOCUS_STACK / f"{name}.png"
+    if peer.exists():
+        moving = read_srgb(peer)
+        h, _ = register(moving, results["flexdof"])
+        results["focus-stack"], covered = warp(moving, h, shape)
+        cover &= covered
+    reach = int(meta["kernel"]["size"]) // 2
+    green = {k: linear(v[..., 1]) for k, v in results.items()}
+    lin_frames = np.stack([linear(f[..., 1]) for f in frames])
+    floor = lin_frames.min(axis=0)
+    rows, crops = [], []
+    for mask in highlights(frames, reach)[:top]:
+        dist = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, 5)
+        ring = (dist >= RING_PX[0]) & (dist <= RING_PX[1]) & cover
+        if ring.sum() < 50:
+            continue
+        per_frame = [glow(f, floor, ring) for f in lin_frames]
+        sharpest = int(np.argmin(per_frame))
+        ys, xs = np.nonzero(mask)
+        row = {
+            "at": [int(xs.mean()), int(ys.mean())],
+            "clipped_px": int(mask.sum()),
+            "sharpest frame": per_frame[sharpest],
+        }
+        row.update({k: glow(v, floor, ring) for k, v in green.items()})
+        rows.append(row)
+        y, x = row["at"][1], row["at"][0]
+        if len(crops) < 4 and CROP_HALF <= y < shape[0] - CROP_HALF and CROP_HALF <= x < shape[1] - CROP_HALF:
+            box = (slice(y - CROP_HALF, y + CROP_HALF), slice(x - CROP_HALF, x + CROP_HALF))
+            tiles = [results[k][box] for k in results] + [frames[sharpest][box]]
+            crops.append(np.hstack([np.clip(t, 0, 255).astype(np.uint8)[..., ::-1] for t in tiles]))
+    if crops:
+        grid = np.vstack(crops)
+        grid = cv2.resize(grid, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
+        cv2.imwrite(str(out / f"{name}_glow.png"), grid)
+    return rows
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stacks", default=",".join(STACKS))
+    parser.add_argument("--out", type=Path, default=Path("tests/benchmarks/results/highlights"))
+    parser.add_argument("--work", type=Path, default=Path("/tmp/flexdof-glow"))
+    parser.add_argument("--top", type=int, default=10)
+    parser.add_argument(
+        "--variant", action="append", default=[], help="flexdof flags to compare (repeatable)"
+    )
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.work.mkdir(parents=True, exist_ok=True)
+    lines = [
+        "# Glow round clipped highlights",
+        "",
+        "`python tests/benchmarks/highlight_glow.py`: mean of image minus the frames' "
+        f"per-pixel minimum over the ring {RING_PX[0]:g}-{RING_PX[1]:g} px from each "
+        "highlight's clipped pixels (linear light, green; 0 = no light beyond what every "
+        "frame shows). The sharpest frame is the level a faithful result matches.",
+        "",
+    ]
+    summary = {}
+    for name in args.stacks.split(","):
+        rows = measure(name, STACKS[name], args.work, args.out, args.top, args.variant)
+        if not rows:
+            lines += [f"## {name}", "", "no highlight that some frame leaves unclipped", ""]
+            continue
+        keys = [k for k in rows[0] if k not in ("at", "clipped_px")]
+        lines += [f"## {name}", "", "| at (x, y) | clipped px | " + " | ".join(keys) + " |"]
+        lines.append("|---|---|" + "---|" * len(keys))
+        for row in rows:
+            values = " | ".join(f"{row[k]:.4f}" for k in keys)
+            lines.append(f"| {row['at'][0]}, {row['at'][1]} | {row['clipped_px']} | {values} |")
+        means = {k: float(np.mean([r[k] for r in rows])) for k in keys}
+        lines.append("| **mean** | | " + " | ".join(f"**{means[k]:.4f}**" for k in keys) + " |")
+        lines.append("")
+        summary[name] = means
+        print(name, {k: round(v, 4) for k, v in means.items()}, flush=True)
+    (args.out / "highlight_glow.md").write_text("\n".join(lines) + "\n")
+    (args.out / "highlight_glow.json").write_text(json.dumps(summary, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
