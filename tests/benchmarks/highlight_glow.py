@@ -63,7 +63,7 @@ def highlights(frames: list[np.ndarray], reach: int) -> list[np.ndarray]:
     largest first."""
     clipped = [f.max(axis=2) >= 255 for f in frames]
     union = np.logical_or.reduce(clipped).astype(np.uint8)
-    count, labels, stats, _ = cv2.connectedComponentsWithStats(union, connectivity=8)
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(union, connectivity=8)
     kernel = np.ones((2 * reach + 1,) * 2, np.uint8)
     found = []
     for label in np.argsort(-stats[1:, cv2.CC_STAT_AREA]) + 1:
@@ -121,7 +121,8 @@ def measure(
         row.update({k: glow(v, floor, ring) for k, v in green.items()})
         rows.append(row)
         y, x = row["at"][1], row["at"][0]
-        if len(crops) < 4 and CROP_HALF <= y < shape[0] - CROP_HALF and CROP_HALF <= x < shape[1] - CROP_HALF:
+        inside = CROP_HALF <= y < shape[0] - CROP_HALF and CROP_HALF <= x < shape[1] - CROP_HALF
+        if len(crops) < 4 and inside:
             box = (slice(y - CROP_HALF, y + CROP_HALF), slice(x - CROP_HALF, x + CROP_HALF))
             tiles = [results[k][box] for k in results] + [frames[sharpest][box]]
             crops.append(np.hstack([np.clip(t, 0, 255).astype(np.uint8)[..., ::-1] for t in tiles]))
