@@ -237,7 +237,7 @@ def leave_out_blank(stack: Stack, previews: list[np.ndarray], positions: np.ndar
     if not blank:
         return stack, previews, positions, ()
     names = tuple(stack.files[i].name for i in blank)
-    keep = [i for i in range(len(stack)) if i not in set(blank)]
+    keep = [i for i in range(len(stack)) if i not in blank]
     if len(keep) < 2:
         raise InputError(
             f"{_describe_frames(stack)}: {', '.join(names)} "

@@ -15,14 +15,17 @@ light (green channel), over the ring 3-20 px from the clipped pixels:
 * **glow**: the mean of the image minus the frames' per-pixel minimum there. A defocused
   frame adds its highlight's disk to the ring, so the minimum over the frames is the
   ring without the highlight's light, what the frame focused there shows (below);
-* the same of the **sharpest frame** (the frame whose ring is darkest: the one that
-  spreads least light into it), the level a faithful result matches.
+* the same of the **sharpest frame** (the most Laplacian energy within the ring's outer
+  radius), the level a faithful result matches.
 
-A result cannot pass by darkening: the frame-range clip keeps every non-clipped pixel
-within the frames' range, so the glow cannot go below 0, and the sharpest frame's own
-figure is printed beside it. Writes ``DIR/highlight_glow.md``, ``DIR/highlight_glow.json``
-and ``DIR/NAME_glow.png`` (four of the largest highlights: flexdof | each variant |
-focus-stack | sharpest frame, 3x nearest-neighbour).
+The measure is signed, so a result darker than the frames reads low: below the sharpest
+frame's figure means darker than the frame focused there, not less glow (read it beside
+that figure). flexdof's default clips every unclipped pixel to the frames' 3x3 range
+(a little below the per-pixel minimum at most); ``--no-frame-range`` and the peers are not
+held. In the committed run no stack's mean reads below its sharpest frame's. Writes
+``DIR/highlight_glow.md``, ``DIR/highlight_glow.json`` and ``DIR/NAME_glow.png`` (four of
+the largest highlights: flexdof | each variant | focus-stack | sharpest frame, 3x
+nearest-neighbour).
 """
 
 from __future__ import annotations
@@ -42,13 +45,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_stack_regions import FOCUS_STACK, read_srgb, register, warp
 from real_stacks import SHARED, STACKS
 
+from pipeline.core.colour import srgb_to_linear
+
 RING_PX = (3.0, 20.0)
 CROP_HALF = 50
 
 
 def linear(srgb: np.ndarray) -> np.ndarray:
-    v = srgb / 255.0
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    """sRGB code values 0-255 -> linear light (the decoder's own EOTF)."""
+    return srgb_to_linear(srgb / 255.0)
 
 
 def run(name: str, pattern: str, work: Path, extra: list[str], tag: str) -> Path:
@@ -110,13 +115,14 @@ def measure(
         ring = (dist >= RING_PX[0]) & (dist <= RING_PX[1]) & cover
         if ring.sum() < 50:
             continue
-        per_frame = [glow(f, floor, ring) for f in lin_frames]
-        sharpest = int(np.argmin(per_frame))
+        near = dist <= RING_PX[1]  # the sharpest frame there: the most Laplacian energy
+        energy = [float(np.var(cv2.Laplacian(f, cv2.CV_32F)[near])) for f in lin_frames]
+        sharpest = int(np.argmax(energy))
         ys, xs = np.nonzero(mask)
         row = {
             "at": [int(xs.mean()), int(ys.mean())],
             "clipped_px": int(mask.sum()),
-            "sharpest frame": per_frame[sharpest],
+            "sharpest frame": glow(lin_frames[sharpest], floor, ring),
         }
         row.update({k: glow(v, floor, ring) for k, v in green.items()})
         rows.append(row)
