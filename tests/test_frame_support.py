@@ -23,6 +23,14 @@ def _frames(n=5, shape=(40, 56, 3), seed=0):
     return [rng.uniform(0.0, 1.0, shape).astype(np.float32) for _ in range(n)]
 
 
+def _chromaticity(image):
+    """(R, B) / (R + G + B) of each pixel, every channel raised by the documented floor
+    (float64, written out per channel)."""
+    f = fs.CHROMA_FLOOR
+    r, g, b = (image[..., c].astype(np.float64) + f for c in range(3))
+    return np.stack([r / (r + g + b), b / (r + g + b)], axis=-1)
+
+
 def _streamed(frames, order, full=True):
     """Merge the frames' statistics in ``order`` as two lanes would (then lane 1 into 0)."""
     lanes = [None, None]
@@ -47,6 +55,10 @@ def test_streamed_range_and_sharpest_equal_brute_force(order):
     code = 0.5 / fs.CODE_MAX  # codes round to nearest
     np.testing.assert_allclose(fs.from_codes(got.low), stacked.min(axis=0), atol=code)
     np.testing.assert_allclose(fs.from_codes(got.high), stacked.max(axis=0), atol=code)
+    shares = np.stack([_chromaticity(f) for f in frames])
+    near = code + 1e-6  # float32's rounding of the shares on top of the codes'
+    np.testing.assert_allclose(fs.from_codes(got.colour_low), shares.min(axis=0), atol=near)
+    np.testing.assert_allclose(fs.from_codes(got.colour_high), shares.max(axis=0), atol=near)
     focus = np.stack([fs.focus_measure(fs.to_codes(f)) for f in frames])
     b = fs.FOCUS_BLOCK_PX
     assert focus.shape[1:] == (-(-40 // b), -(-56 // b))  # one value per block
@@ -88,6 +100,7 @@ def test_clip_to_frames_is_a_3x3_min_max_filter(shape, full):
     frames = [rng.uniform(0.01, 0.99, shape).astype(np.float32) for _ in range(3)]
     support = _streamed(frames, [0, 1, 2], full)
     assert (support.sharpest is None) == (not full)  # the range only: no frame choice
+    support.colour_low = support.colour_high = None  # the channels' range alone (see below)
     image = rng.uniform(-0.5, 1.5, frames[0].shape).astype(np.float32)
     clipped = np.zeros(image.shape[:2], bool)
     clipped[5:8, 10:20] = True
@@ -105,6 +118,68 @@ def test_clip_to_frames_is_a_3x3_min_max_filter(shape, full):
     inside = (image >= low + 1e-3) & (image <= high - 1e-3)  # nothing inside moves
     np.testing.assert_array_equal(got[inside], image[inside])
     assert np.mean(got != image) > 0.3  # and much outside did
+
+
+def test_a_colour_no_frame_shows_takes_the_frames_colour_at_its_own_brightness():
+    # both frames show one colour, (3, 2, 1) in linear light, darker and brighter; a pixel
+    # with their highest red and lowest green and blue passes every channel's range (a red
+    # rim beside a highlight) and keeps its sum R + G + B = 0.9 in the frames' colour
+    dark = np.tile(np.float32([0.3, 0.2, 0.1]), (6, 7, 1))
+    bright = 2 * dark
+    support = _streamed([dark, bright], [0, 1])
+    image = (dark + bright) / 2
+    image[3, 3] = [0.6, 0.2, 0.1]
+    image[2, 5] = [0.3, 0.35, 0.12]  # green: moves; the sum stays 0.77
+    got = fs.clip_to_frames(image.copy(), support)
+    np.testing.assert_allclose(got[3, 3], [0.45, 0.30, 0.15], atol=2e-4)
+    np.testing.assert_allclose(got[2, 5], np.float32([3, 2, 1]) * 0.77 / 6, atol=2e-4)
+    keep = np.ones((6, 7), bool)
+    keep[3, 3] = keep[2, 5] = False
+    np.testing.assert_array_equal(got[keep], image[keep])  # the frames' colour stays
+    # where a frame clipped, its colour says nothing: only the channels' range applies
+    clipped = np.zeros((6, 7), bool)
+    clipped[3, 3] = True
+    np.testing.assert_array_equal(fs.clip_to_frames(image.copy(), support, clipped)[3, 3],
+                                  image[3, 3])
+
+
+@pytest.mark.parametrize("shape", [(30, 33, 3), (fs.CLIP_STRIP_ROWS + 5, 12, 3)])
+def test_clip_to_frames_keeps_the_frames_colour_range_over_3x3(shape):
+    rng = np.random.default_rng(7)
+    colour = rng.uniform(0.2, 1.0, shape)  # each pixel's colour, seen brighter or darker
+    frames = [(colour * rng.uniform(0.3, 0.95, shape[:2])[..., None]
+               * rng.uniform(0.95, 1.05, shape)).astype(np.float32) for _ in range(3)]
+    support = _streamed(frames, [0, 1, 2], False)
+    image = rng.uniform(0.0, 1.0, shape).astype(np.float32)
+    clipped = np.zeros(shape[:2], bool)
+    clipped[5:8, 4:9] = True
+    got = fs.clip_to_frames(image.copy(), support, clipped)
+    stacked = np.stack(frames)
+    low = ndimage.minimum_filter(stacked.min(axis=0), size=(3, 3, 1), mode="nearest")
+    high = ndimage.maximum_filter(stacked.max(axis=0), size=(3, 3, 1), mode="nearest")
+    high[clipped] = np.inf
+    shares = np.stack([_chromaticity(f) for f in frames])
+    share_low = ndimage.minimum_filter(shares.min(axis=0), size=(3, 3, 1), mode="nearest")
+    share_high = ndimage.maximum_filter(shares.max(axis=0), size=(3, 3, 1), mode="nearest")
+    tol = 1.5 / fs.CODE_MAX
+    assert np.all(got >= low - tol) and np.all(got <= high + tol)  # channels: as before
+    share = _chromaticity(got)
+    outside = np.any((share < share_low - 1e-4) | (share > share_high + 1e-4), axis=2)
+    at_bound = np.any((got <= low + tol) | (got >= high - tol), axis=2)
+    # a colour out of the frames' range is left only where a frame clipped, or where the
+    # channels' range, applied after the colour, holds the pixel
+    assert not np.any(outside & ~clipped & ~at_bound)
+    before = _chromaticity(np.clip(image, low, high))
+    was_out = np.any((before < share_low) | (before > share_high), axis=2) & ~clipped
+    assert was_out.mean() > 0.3 and outside[~clipped].mean() < 0.2 * was_out.mean()
+    moved = was_out & ~at_bound  # the sum is kept where the channels' range let it be
+    sums = got.sum(axis=2), np.clip(image, low, high).sum(axis=2)
+    np.testing.assert_allclose(sums[0][moved], sums[1][moved], atol=3 * tol)  # codes' slack
+    inside = np.all((before > share_low + 1e-3) & (before < share_high - 1e-3), axis=2)
+    inside &= np.all((image >= low + 1e-3) & (image <= high - 1e-3), axis=2)
+    np.testing.assert_array_equal(got[inside], image[inside])  # nothing inside moves
+    for frame in frames:  # each frame is its own colour: the codes' rounding moves none
+        np.testing.assert_array_equal(fs.clip_to_frames(frame.copy(), support), frame)
 
 
 def test_clip_to_frames_bounds_black_at_zero_and_leaves_white_open():

@@ -69,6 +69,20 @@ def from_codes(codes: np.ndarray) -> np.ndarray:
     return cv2.multiply(codes, 1.0 / CODE_MAX, dtype=cv2.CV_32F)
 
 
+# added to each channel before the chromaticity is taken (linear light): a black pixel
+# reads grey, not 0/0 (2e-4 is under one 8-bit sRGB level)
+CHROMA_FLOOR = 2e-4
+
+
+def chromaticity(image: np.ndarray) -> np.ndarray:
+    """``(R, B) / (R + G + B)`` of an RGB image (rows, cols, 2), float32, each channel
+    raised by ``CHROMA_FLOOR``: its colour apart from its brightness (linear light; in
+    [0, 1], neutral at 1/3)."""
+    floor = np.float32(CHROMA_FLOOR)
+    total = image.sum(axis=2, keepdims=True, dtype=np.float32) + np.float32(3.0) * floor
+    return (image[..., 0::2] + floor) / total
+
+
 @dataclasses.dataclass
 class FrameSupport:
     """Streaming per-pixel statistics of aligned frames (linear light, unweighted).
@@ -83,6 +97,9 @@ class FrameSupport:
         Per block, the frame with the best focus measure (codes).
     noise : list of ndarray
         Each frame's noise std per channel (:func:`frame_noise`).
+    colour_low, colour_high : ndarray (rows, cols, 2), uint16, or None
+        Per-pixel minimum and maximum over the frames of their :func:`chromaticity`, as
+        codes; ``None`` for frames that are not RGB.
     """
 
     low: np.ndarray
@@ -90,6 +107,8 @@ class FrameSupport:
     focus: np.ndarray
     sharpest: np.ndarray
     noise: list
+    colour_low: np.ndarray | None = None
+    colour_high: np.ndarray | None = None
 
     @classmethod
     def of_frame(cls, frame: np.ndarray, valid: np.ndarray, *, full: bool = True) -> FrameSupport:
@@ -97,9 +116,12 @@ class FrameSupport:
         ``full``, only its range (``focus`` and ``sharpest`` ``None``, no noise): all that
         :func:`clip_to_frames` needs."""
         codes = to_codes(frame)  # one array for all three until a merge writes
+        rgb = frame.ndim == 3 and frame.shape[2] == 3
+        colour = to_codes(np.clip(chromaticity(frame), 0.0, 1.0)) if rgb else None
         if not full:
-            return cls(codes, codes, None, None, [])
-        return cls(codes, codes, focus_measure(codes), codes, [frame_noise(frame, valid)])
+            return cls(codes, codes, None, None, [], colour, colour)
+        noise = [frame_noise(frame, valid)]
+        return cls(codes, codes, focus_measure(codes), codes, noise, colour, colour)
 
     def merge(self, other: FrameSupport) -> FrameSupport:
         """Fold ``other`` in, in place (on a tie of focus ``self``'s frame stays: the
@@ -112,6 +134,11 @@ class FrameSupport:
         # took 20 ms a frame on 3 Mpx RGB, cv2.copyTo 1.5 ms)
         cv2.min(self.low, other.low, dst=self.low)
         cv2.max(self.high, other.high, dst=self.high)
+        if self.colour_low is not None and other.colour_low is not None:
+            if self.colour_high is self.colour_low:
+                self.colour_high = self.colour_low.copy()
+            cv2.min(self.colour_low, other.colour_low, dst=self.colour_low)
+            cv2.max(self.colour_high, other.colour_high, dst=self.colour_high)
         if self.focus is None:  # the range only
             return self
         better = cv2.compare(_choice(other.focus - self.focus, self.sharpest.shape), 0, cv2.CMP_GT)
@@ -234,13 +261,16 @@ def clip_to_frames(
     bound is never below 0 (light is not negative), an upper bound at the end code
     65535 is open (frames at or beyond white), and pixels ``clipped`` in some frame keep
     no upper bound (the frames saw only that the scene is at least that
-    bright). By strips of ``CLIP_STRIP_ROWS`` rows (all channels at once, with OpenCV's
-    threaded min/max: 90 -> 25 ms on pcb10's 3 Mpx), so the bounds' float temporaries
-    stay a strip's worth.
+    bright). An RGB image is then kept to the frames' range of colour differences as
+    well (:func:`_clip_colour`; where ``support`` has them). By strips of
+    ``CLIP_STRIP_ROWS`` rows (all channels at once, with OpenCV's threaded min/max: 90 ->
+    25 ms on pcb10's 3 Mpx), so the bounds' float temporaries stay a strip's worth.
     """
     r = int(radius_px)
     box = cv2.getStructuringElement(cv2.MORPH_RECT, (2 * r + 1, 2 * r + 1))
     lows, highs = support.low.reshape(image.shape), support.high.reshape(image.shape)
+    colour = support.colour_low is not None and image.ndim == 3 and image.shape[2] == 3
+    colour_lows, colour_highs = support.colour_low, support.colour_high
     rows = image.shape[0]
     for r0 in range(0, rows, CLIP_STRIP_ROWS):
         r1 = min(rows, r0 + CLIP_STRIP_ROWS)
@@ -250,13 +280,53 @@ def clip_to_frames(
         high_codes = cv2.dilate(highs[a0:a1], box, borderType=cv2.BORDER_REPLICATE)[inner]
         low = from_codes(cv2.subtract(low_codes, 1))  # 0 stays 0: light is never negative
         high = from_codes(cv2.add(high_codes, 1))
-        np.putmask(high, high_codes == CODE_MAX, np.inf)
+        at_white = high_codes == CODE_MAX
+        np.putmask(high, at_white, np.inf)
         if clipped is not None:
             high[clipped[r0:r1]] = np.inf
         out = image[r0:r1]
         cv2.max(out, low, dst=out)
         cv2.min(out, high, dst=out)
+        if colour:
+            unknown = at_white.any(axis=2)
+            if clipped is not None:
+                unknown |= clipped[r0:r1]
+            colour_low = cv2.erode(colour_lows[a0:a1], box, borderType=cv2.BORDER_REPLICATE)
+            colour_high = cv2.dilate(colour_highs[a0:a1], box, borderType=cv2.BORDER_REPLICATE)
+            _clip_colour(out, colour_low[inner], colour_high[inner], unknown, low, high)
     return image
+
+
+def _clip_colour(out, low_codes, high_codes, unknown, low, high) -> None:
+    """Keep the RGB strip ``out``'s :func:`chromaticity` within the frames' range (codes
+    over the neighbourhood, widened by one code; open where ``unknown``), each moved
+    pixel keeping its sum ``R + G + B``; then ``out`` is clipped to the channels' range
+    ``[low, high]`` again. In place.
+
+    The per-channel range alone admits colours no frame shows: beside a clipped highlight
+    each channel's deconvolution undershoots by its own amount, so a pixel may take the
+    frames' highest red and their lowest green and blue (orange and red rims on pcb7's
+    pins; 0.1-1.4% of the real stacks' pixels more than 10 levels out of the frames'
+    colour range). A true all-in-focus pixel is one of the frames', colour included. The
+    colour is a ratio, not a difference: a dark pixel with a bright one's ``R - G`` is
+    far more saturated than any frame.
+    """
+    c = chromaticity(out)
+    lo = from_codes(cv2.subtract(low_codes, 1))
+    hi = from_codes(cv2.add(high_codes, 1))
+    np.putmask(lo, np.broadcast_to(unknown[..., None], lo.shape), -np.inf)
+    np.putmask(hi, np.broadcast_to(unknown[..., None], hi.shape), np.inf)
+    kept = np.clip(c, lo, hi)
+    moved = np.any(kept != c, axis=2)
+    if not moved.any():
+        return
+    pixels, kept = out[moved], kept[moved]
+    floor = np.float32(CHROMA_FLOOR)
+    total = pixels.sum(axis=1) + np.float32(3.0) * floor
+    red, blue = kept[:, 0] * total - floor, kept[:, 1] * total - floor
+    green = total - np.float32(3.0) * floor - red - blue
+    pixels = np.stack([red, green, blue], axis=1)
+    out[moved] = np.clip(pixels, low[moved], high[moved])
 
 
 # Flat areas: where the frames' per-pixel max and min images both hold less fine detail
