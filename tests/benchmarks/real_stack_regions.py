@@ -165,6 +165,17 @@ def register(
 
 
 # ----------------------------------------------------------------------------- producers
+def frames_composite(frames: list[np.ndarray]) -> np.ndarray:
+    """Per pixel the aligned (RGB) frame with the most Laplacian energy (smoothed over
+    4 px): a plain focus stacker made of the frames' own pixels."""
+    energy = [
+        cv2.GaussianBlur(cv2.Laplacian(f.mean(axis=-1), cv2.CV_32F) ** 2, (0, 0), 4.0)
+        for f in frames
+    ]
+    choice = np.argmax(np.stack(energy), axis=0)
+    return np.take_along_axis(np.stack(frames), choice[None, ..., None], axis=0)[0]
+
+
 def run_flexdof(name: str, pattern: str, work: Path, extra: list[str]) -> Path:
     out = work / f"{name}_flexdof.tif"
     files = sorted(glob.glob(str(SHARED / pattern)))
@@ -295,12 +306,7 @@ def evaluate(
     registration = {}
     # peers are registered to a focus-selected composite of the aligned frames, not to the
     # result under test, so their placement does not depend on the method being judged
-    energy = [
-        cv2.GaussianBlur(cv2.Laplacian(f.mean(axis=-1), cv2.CV_32F) ** 2, (0, 0), 4.0)
-        for f in frames
-    ]
-    choice = np.argmax(np.stack(energy), axis=0)
-    composite = np.take_along_axis(np.stack(frames), choice[None, ..., None], axis=0)[0]
+    composite = frames_composite(frames)
     peers = {
         "focus-stack": run_focus_stack(name, pattern, work, focus_stack),
         AS_SHOT_PEER: run_focus_stack(name, pattern, work, focus_stack, as_shot=True),

@@ -1,0 +1,128 @@
+"""Colours no frame shows, on the real stacks: flexdof (as run, and with ``--variant``
+flags) against focus-stack and the frames' own composite.
+
+    python tests/benchmarks/colour_fringes.py [--stacks pcb7,pcb10] [--out DIR] \
+        [--work DIR] [--variant "--no-frame-range"]...
+
+A true all-in-focus pixel is one of the frames' pixels (the frame in focus there), so its
+colour lies within the frames' colours there. Per pixel, in 8-bit sRGB display levels,
+the measure is how far the image's colour differences ``R - G`` and ``B - G`` leave
+``[min, max]`` of the aligned frames' over a 5x5 neighbourhood (the registration slack of
+the region benchmark's halo measure), the larger of the two. It is two-sided: a
+desaturated result leaves the range where every frame is coloured, so greying the
+image cannot pass. It is taken in display terms, not in the linear chromaticity
+:func:`pipeline.core.frame_support.clip_to_frames` bounds since stop 34. Over the frames'
+common area less a 20 px border:
+
+* **mean**: the mean excess (levels);
+* **per 10k**: pixels more than ``FRINGE_LEVELS`` out, per 10 000 (red rims beside
+  clipped highlights are a few pixels wide: the mean hides them, the count does not).
+
+The frames' composite (per pixel the frame with the most Laplacian energy, the region
+benchmark's) is the check of the measure: made of frames' pixels, it reads about 0.
+Writes ``DIR/colour_fringes.md`` and ``DIR/colour_fringes.json``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import shlex
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from highlight_glow import run
+from real_stack_regions import FOCUS_STACK, frames_composite, read_srgb, register, warp
+from real_stacks import SHARED, STACKS
+
+SLACK_PX = 2  # 5x5, as the halo measure's
+BORDER_PX = 20
+FRINGE_LEVELS = 10.0
+
+
+def colour_excess(image: np.ndarray, frames: list[np.ndarray]) -> np.ndarray:
+    """Per pixel, levels by which ``image``'s ``R - G`` or ``B - G`` leaves the frames'
+    range over the neighbourhood (the larger)."""
+    box = np.ones((2 * SLACK_PX + 1,) * 2, np.uint8)
+    excess = np.zeros(image.shape[:2], np.float32)
+    for a in (0, 2):
+        differences = np.stack([f[..., a] - f[..., 1] for f in frames])
+        low = cv2.erode(differences.min(axis=0), box)
+        high = cv2.dilate(differences.max(axis=0), box)
+        d = image[..., a] - image[..., 1]
+        np.maximum(excess, np.maximum(d - high, low - d), out=excess)
+    return excess
+
+
+def measure(name: str, pattern: str, work: Path, variants: list[str]) -> dict:
+    default = run(name, pattern, work, [], "default")
+    meta = json.loads(Path(f"{default}.json").read_text())
+    base = Path(sorted(glob.glob(str(SHARED / pattern)))[0]).parent
+    images = {"flexdof": read_srgb(default)}
+    for number, flags in enumerate(variants, 1):
+        images[f"flexdof {flags}"] = read_srgb(run(name, pattern, work, shlex.split(flags),
+                                                   f"variant{number}"))
+    shape = images["flexdof"].shape
+    frames, cover = [], np.ones(shape[:2], bool)
+    for entry in meta["frames"]:
+        frame, covered = warp(read_srgb(base / entry["file"]), np.array(entry["homography"]), shape)
+        frames.append(frame)
+        cover &= covered
+    composite = frames_composite(frames)
+    peer = FOCUS_STACK / f"{name}.png"
+    if peer.exists():  # registered to the frames, as in real_stack_regions.py
+        moving = read_srgb(peer)
+        h, _ = register(moving, composite)
+        images["focus-stack"], covered = warp(moving, h, shape)
+        cover &= covered
+    images["frames' composite"] = composite
+    inner = cv2.erode(cover.astype(np.uint8), np.ones((2 * BORDER_PX + 1,) * 2, np.uint8)) > 0
+    row = {}
+    for label, image in images.items():
+        excess = colour_excess(image, frames)[inner]
+        row[label] = {"mean": float(excess.mean()),
+                      "per_10k": float(np.mean(excess > FRINGE_LEVELS) * 1e4)}
+    return row
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--stacks", default=",".join(STACKS))
+    parser.add_argument("--out", type=Path, default=Path("tests/benchmarks/results/colour"))
+    parser.add_argument("--work", type=Path, default=Path("/tmp/flexdof-colour"))
+    parser.add_argument(
+        "--variant", action="append", default=[], help="flexdof flags to compare (repeatable)"
+    )
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    args.work.mkdir(parents=True, exist_ok=True)
+    summary = {name: measure(name, STACKS[name], args.work, args.variant)
+               for name in args.stacks.split(",")}
+    labels = list(next(iter(summary.values())))
+    lines = [
+        "# Colours no frame shows",
+        "",
+        "`python tests/benchmarks/colour_fringes.py`: per pixel, 8-bit sRGB levels by which "
+        f"R-G or B-G leaves the aligned frames' range over {2 * SLACK_PX + 1}x"
+        f"{2 * SLACK_PX + 1} px; mean, and pixels over {FRINGE_LEVELS:g} levels per 10 000.",
+        "",
+        "| stack | " + " | ".join(labels) + " |",
+        "|---|" + "---|" * len(labels),
+    ]
+    for name, row in summary.items():
+        cells = [f"{row[k]['mean']:.3f} / {row[k]['per_10k']:.1f}" if k in row else "-"
+                 for k in labels]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+        print(name, {k: (round(v["mean"], 3), round(v["per_10k"], 1)) for k, v in row.items()},
+              flush=True)
+    (args.out / "colour_fringes.md").write_text("\n".join(lines) + "\n")
+    (args.out / "colour_fringes.json").write_text(json.dumps(summary, indent=1) + "\n")
+
+
+if __name__ == "__main__":
+    main()
