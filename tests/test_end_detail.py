@@ -132,7 +132,7 @@ def test_restore_ends_leaves_clipped_pixels_and_reports_the_share():
 
     class End:  # an end at the end frame's own depth, whose kernel is wider than the stack's
         frame, beyond, kernel, frame_kernel = 0, 0.0, wider.astype(np.float32), delta_kernel
-        weight = np.ones((24, 24), np.float32)
+        weight = coarse_weight = np.ones((24, 24), np.float32)
         frame_image = cv2.resize(truth, (96, 96), interpolation=cv2.INTER_AREA)
 
     def read(i, box):

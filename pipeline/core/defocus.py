@@ -32,6 +32,21 @@ def _focus_measure(grey: np.ndarray) -> np.ndarray:
     return cv2.GaussianBlur(lap * lap, (0, 0), 3.0)
 
 
+# the coarse band a frame's content beyond an end shows (:func:`_coarse_measure`): the band
+# ``G_1 g - G_3 g`` of the fit's previews (6-19 px of pcb7's 2048 px frames at 320 px), its
+# energy smoothed over this sigma (preview px)
+COARSE_BAND_PX = (1.0, 3.0)
+COARSE_SMOOTH_PX = 3.0
+
+
+def _coarse_measure(grey: np.ndarray) -> np.ndarray:
+    """Local energy of a frame's coarse band (``COARSE_BAND_PX``): the detail a few
+    times coarser than the Laplacian's, which content far out of focus still shows."""
+    fine, coarse = COARSE_BAND_PX
+    band = cv2.GaussianBlur(grey, (0, 0), fine) - cv2.GaussianBlur(grey, (0, 0), coarse)
+    return cv2.GaussianBlur(band * band, (0, 0), COARSE_SMOOTH_PX)
+
+
 def _pairs(n: int) -> list[tuple[int, int]]:
     """Frame pairs 2+ frames apart (neighbours only for tiny stacks); from five frames on
     also 4 apart.
@@ -58,7 +73,8 @@ def _normalised(frame: np.ndarray) -> np.ndarray:
 
 class FocusMaps:
     """The sharpest frame per pixel of a stack and its focus measure, built one frame at a
-    time (so a stack of any length needs two maps, not all its frames).
+    time (so a stack of any length needs two maps, not all its frames), and the same by
+    the coarse band (``coarse_sharpest``, ``coarse_best``; :func:`_coarse_measure`).
 
     Frames are added with their index; a pixel's sharpest frame is the first of the best
     (as ``np.argmax``) when they are added in index order.
@@ -67,6 +83,8 @@ class FocusMaps:
     def __init__(self):
         self.sharpest: np.ndarray | None = None
         self.best: np.ndarray | None = None
+        self.coarse_sharpest: np.ndarray | None = None
+        self.coarse_best: np.ndarray | None = None
 
     @classmethod
     def of(cls, frames) -> FocusMaps:
@@ -78,13 +96,18 @@ class FocusMaps:
 
     def add(self, index: int, grey: np.ndarray) -> None:
         """Add frame ``index`` (aligned, grey)."""
-        focus = _focus_measure(_normalised(grey))
+        grey = _normalised(grey)
+        focus, coarse = _focus_measure(grey), _coarse_measure(grey)
         if self.best is None:
             self.best, self.sharpest = focus, np.full(focus.shape, index, np.intp)
+            self.coarse_best, self.coarse_sharpest = coarse, self.sharpest.copy()
             return
         better = focus > self.best
         self.best = np.where(better, focus, self.best)
         self.sharpest[better] = index
+        better = coarse > self.coarse_best
+        self.coarse_best = np.where(better, coarse, self.coarse_best)
+        self.coarse_sharpest[better] = index
 
     def textured(self) -> np.ndarray:
         """The pixels with detail to tell the sharpest frame by: the 30% best in focus."""

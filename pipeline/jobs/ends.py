@@ -12,7 +12,8 @@ end frame is the sharpest, with its content at ``beyond`` of the range past it
 average is deconvolved again with the kernel of that depth
 (:func:`pipeline.core.stack_kernel.depth_kernel`) and the difference to the stack
 kernel's result is added where that end frame is the sharpest (the map of the aligned
-previews, smoothed), at a reduced resolution (:func:`_reduced_correction`), and where
+previews, smoothed; its coarse band also where the end frame holds the most coarse detail),
+at a reduced resolution (:func:`_reduced_correction`), and where
 the end frame itself shows what it adds (:func:`_frame_agreement`). Where the result there
 is still softer than the end frame (content further beyond the end than the one depth fitted
 for it), the frame's own 2-8 px detail is kept (:func:`keep_end_detail`).
@@ -97,6 +98,7 @@ class EndKernel:
     weight: np.ndarray  # blend weight at the previews' resolution (float32)
     frame_image: np.ndarray  # the end frame, grey and aligned, at the correction's size
     frame_kernel: np.ndarray  # the end frame's own PSF at that depth (full resolution)
+    coarse_weight: np.ndarray  # the coarse band's blend weight (:func:`end_kernels`)
 
 
 def correction_factor(shape) -> int:
@@ -117,8 +119,19 @@ def end_kernels(fit, positions, weights, span_px, *, lens, absolute, read_end) -
     :func:`pipeline.core.defocus.end_depths`), its focus positions, frame weights and
     blur span (px). ``read_end(i)`` gives frame ``i`` grey and aligned at the
     correction's size (:func:`correction_factor`, :func:`reduced_size`), for the check of
-    :func:`_frame_agreement`; it is called for the ends kept only."""
+    :func:`_frame_agreement`; it is called for the ends kept only.
+
+    The fine band is blended where the end frame is the sharpest (the focus maps'
+    ``sharpest``), the coarse band also where it holds the most coarse detail
+    (``coarse_sharpest``): content beyond an end shows its coarse detail best in the end
+    frame even where another depth's fine detail lies over it. pcb7's glossy board, in
+    focus in frame 5, mirrors the striped background beyond frame 6, whose coarse contrast
+    rises frame by frame to the end (3.2 ... 15.4, 16.2 levels); with the fine band's
+    weight alone the result kept 10.7 there, with this weight 13.7, and the centre and
+    right regions' haze went from losses to ties against focus-stack (pcb7 4/9 -> 6/9;
+    ``tests/benchmarks/results/real_regions/NOTE.md``, stop 34)."""
     small, factor, maps = fit
+    maps = defocus.FocusMaps.of(small) if maps is None else maps
     try:
         ends, sharpest = defocus.end_depths(small, positions, span_px, downscale=factor, maps=maps)
     except InputError as err:  # too few frames or no blur: nothing to extend
@@ -140,7 +153,11 @@ def end_kernels(fit, positions, weights, span_px, *, lens, absolute, read_end) -
         own = frame_kernels(
             positions, at, lens=lens, absolute=absolute, blur_span_px=span_px
         )[end.frame].astype(np.float32)
-        out.append(EndKernel(end.frame, end.beyond, kernel, weight, read_end(end.frame), own))
+        coarse = (maps.coarse_sharpest == end.frame).astype(np.float32)
+        coarse = np.maximum(weight, cv2.GaussianBlur(coarse, (0, 0), BLEND_PREVIEW_PX))
+        out.append(
+            EndKernel(end.frame, end.beyond, kernel, weight, read_end(end.frame), own, coarse)
+        )
     return out
 
 
@@ -293,7 +310,8 @@ def restore_ends(
     (:func:`_frame_agreement`), what deconvolving ``average`` with that end depth's
     kernel adds to deconvolving it with ``stack_kernel`` (:func:`_reduced_correction`, at a
     reduced resolution for frames of ``CORRECTION_SIDE_PX`` and more), its fine and coarse
-    bands each as far as the end frame shows it (:func:`_correction_bands`). Then, with
+    bands each as far as the end frame shows it (:func:`_correction_bands`), the coarse one
+    also where the end frame holds the most coarse detail (:func:`end_kernels`). Then, with
     ``read_frame(i, box)`` (that ``(rows, columns)`` box of frame ``i`` aligned at full
     resolution, in colour or as its :func:`mean_grey`, and where the frame covers it),
     keep there the end frame's own detail (:func:`keep_end_detail`), except where a frame
@@ -302,13 +320,17 @@ def restore_ends(
     factor = correction_factor(shape)
     report, blends = [], []
     for end in ends:
-        weight = cv2.resize(end.weight, shape[::-1], interpolation=cv2.INTER_LINEAR)
+        weights = [
+            cv2.resize(w, shape[::-1], interpolation=cv2.INTER_LINEAR)
+            for w in (end.weight, end.coarse_weight)
+        ]
+        weight = weights[0]
         small = _reduced_correction(average, end.kernel, stack_kernel, factor)
         own = _own_kernel(end.frame_kernel, factor)
         bands = _correction_bands(small)
         kept = [
-            weight * _frame_agreement(result, band, end.frame_image, own, window, most)
-            for band, window, most in bands
+            w * _frame_agreement(result, band, end.frame_image, own, window, most)
+            for (band, window, most), w in zip(bands, weights)
         ]
         rows = np.flatnonzero(np.maximum(*kept).max(axis=1) >= BLEND_FLOOR)  # rows changed
         if rows.size:
