@@ -65,7 +65,9 @@ def crops_png(path: Path, best: np.ndarray, result: np.ndarray, size: int = 240)
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=Path("results/real_stacks"))
+    parser.add_argument(
+        "--out", type=Path, default=Path(__file__).resolve().parent / "results" / "real_stacks"
+    )
     parser.add_argument("--method", default="wiener")
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
