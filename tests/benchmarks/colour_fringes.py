@@ -25,10 +25,7 @@ Writes ``DIR/colour_fringes.md`` and ``DIR/colour_fringes.json``.
 
 from __future__ import annotations
 
-import argparse
-import glob
 import json
-import shlex
 import sys
 from pathlib import Path
 
@@ -36,9 +33,9 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from highlight_glow import run
-from real_stack_regions import FOCUS_STACK, frames_composite, read_srgb, register, warp
-from real_stacks import SHARED, STACKS
+from highlight_glow import run_beside_peer, variant_parser
+from real_stack_regions import frames_composite
+from real_stacks import STACKS
 
 SLACK_PX = 2  # 5x5, as the halo measure's
 BORDER_PX = 20
@@ -60,27 +57,8 @@ def colour_excess(image: np.ndarray, frames: list[np.ndarray]) -> np.ndarray:
 
 
 def measure(name: str, pattern: str, work: Path, variants: list[str]) -> dict:
-    default = run(name, pattern, work, [], "default")
-    meta = json.loads(Path(f"{default}.json").read_text())
-    base = Path(sorted(glob.glob(str(SHARED / pattern)))[0]).parent
-    images = {"flexdof": read_srgb(default)}
-    for number, flags in enumerate(variants, 1):
-        images[f"flexdof {flags}"] = read_srgb(run(name, pattern, work, shlex.split(flags),
-                                                   f"variant{number}"))
-    shape = images["flexdof"].shape
-    frames, cover = [], np.ones(shape[:2], bool)
-    for entry in meta["frames"]:
-        frame, covered = warp(read_srgb(base / entry["file"]), np.array(entry["homography"]), shape)
-        frames.append(frame)
-        cover &= covered
-    composite = frames_composite(frames)
-    peer = FOCUS_STACK / f"{name}.png"
-    if peer.exists():  # registered to the frames, as in real_stack_regions.py
-        moving = read_srgb(peer)
-        h, _ = register(moving, composite)
-        images["focus-stack"], covered = warp(moving, h, shape)
-        cover &= covered
-    images["frames' composite"] = composite
+    images, frames, cover, _ = run_beside_peer(name, pattern, work, variants)
+    images["frames' composite"] = frames_composite(frames)
     inner = cv2.erode(cover.astype(np.uint8), np.ones((2 * BORDER_PX + 1,) * 2, np.uint8)) > 0
     row = {}
     for label, image in images.items():
@@ -91,14 +69,7 @@ def measure(name: str, pattern: str, work: Path, variants: list[str]) -> dict:
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--stacks", default=",".join(STACKS))
-    parser.add_argument("--out", type=Path, default=Path("tests/benchmarks/results/colour"))
-    parser.add_argument("--work", type=Path, default=Path("/tmp/flexdof-colour"))
-    parser.add_argument(
-        "--variant", action="append", default=[], help="flexdof flags to compare (repeatable)"
-    )
-    args = parser.parse_args()
+    args = variant_parser(__doc__.splitlines()[0], "colour", "flexdof-colour").parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     args.work.mkdir(parents=True, exist_ok=True)
     summary = {name: measure(name, STACKS[name], args.work, args.variant)

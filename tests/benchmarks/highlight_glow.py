@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from real_stack_regions import FOCUS_STACK, read_srgb, register, warp
+from real_stack_regions import FOCUS_STACK, frames_composite, read_srgb, register, warp
 from real_stacks import SHARED, STACKS
 
 from pipeline.core.colour import srgb_to_linear
@@ -61,6 +61,34 @@ def run(name: str, pattern: str, work: Path, extra: list[str], tag: str) -> Path
     files = sorted(glob.glob(str(SHARED / pattern)))
     subprocess.run(["flexdof", "stack", *files, "-o", str(out), *extra], check=True)
     return out
+
+
+def run_beside_peer(name: str, pattern: str, work: Path, variants: list[str]):
+    """Run flexdof on a stack (and once per ``variants`` flags), warp its frames into the
+    result's geometry by the sidecar's homographies, and register focus-stack's shared
+    result to the frames' composite (as ``real_stack_regions.py`` does, so the peer's
+    placement does not depend on the result judged). Returns the images by label (sRGB
+    levels), the frames, the pixels every image covers, and the sidecar."""
+    default = run(name, pattern, work, [], "default")
+    meta = json.loads(Path(f"{default}.json").read_text())
+    base = Path(sorted(glob.glob(str(SHARED / pattern)))[0]).parent
+    images = {"flexdof": read_srgb(default)}
+    for number, flags in enumerate(variants, 1):
+        made = run(name, pattern, work, shlex.split(flags), f"variant{number}")
+        images[f"flexdof {flags}"] = read_srgb(made)
+    shape = images["flexdof"].shape
+    frames, cover = [], np.ones(shape[:2], bool)
+    for entry in meta["frames"]:
+        frame, covered = warp(read_srgb(base / entry["file"]), np.array(entry["homography"]), shape)
+        frames.append(frame)
+        cover &= covered
+    peer = FOCUS_STACK / f"{name}.png"
+    if peer.exists():
+        moving = read_srgb(peer)
+        h, _ = register(moving, frames_composite(frames))
+        images["focus-stack"], covered = warp(moving, h, shape)
+        cover &= covered
+    return images, frames, cover, meta
 
 
 def highlights(frames: list[np.ndarray], reach: int) -> list[np.ndarray]:
@@ -86,25 +114,8 @@ def glow(image: np.ndarray, floor: np.ndarray, ring: np.ndarray) -> float:
 def measure(
     name: str, pattern: str, work: Path, out: Path, top: int, variants: list[str]
 ) -> list[dict]:
-    default = run(name, pattern, work, [], "default")
-    meta = json.loads(Path(f"{default}.json").read_text())
-    base = Path(sorted(glob.glob(str(SHARED / pattern)))[0]).parent
-    results = {"flexdof": read_srgb(default)}
-    for number, flags in enumerate(variants, 1):
-        made = run(name, pattern, work, shlex.split(flags), f"variant{number}")
-        results[f"flexdof {flags}"] = read_srgb(made)
+    results, frames, cover, meta = run_beside_peer(name, pattern, work, variants)
     shape = results["flexdof"].shape
-    frames, cover = [], np.ones(shape[:2], bool)
-    for entry in meta["frames"]:
-        frame, covered = warp(read_srgb(base / entry["file"]), np.array(entry["homography"]), shape)
-        frames.append(frame)
-        cover &= covered
-    peer = FOCUS_STACK / f"{name}.png"
-    if peer.exists():
-        moving = read_srgb(peer)
-        h, _ = register(moving, results["flexdof"])
-        results["focus-stack"], covered = warp(moving, h, shape)
-        cover &= covered
     reach = int(meta["kernel"]["size"]) // 2
     green = {k: linear(v[..., 1]) for k, v in results.items()}
     lin_frames = np.stack([linear(f[..., 1]) for f in frames])
@@ -139,15 +150,24 @@ def measure(
     return rows
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+def variant_parser(description: str, results: str, work: str) -> argparse.ArgumentParser:
+    """The options of a benchmark that runs flexdof (and ``--variant`` flags) on the real
+    stacks: ``--stacks``, ``--out`` (default ``results/RESULTS`` beside this file),
+    ``--work`` (default ``/tmp/WORK``) and ``--variant``."""
+    parser = argparse.ArgumentParser(description=description)
     parser.add_argument("--stacks", default=",".join(STACKS))
-    parser.add_argument("--out", type=Path, default=Path("tests/benchmarks/results/highlights"))
-    parser.add_argument("--work", type=Path, default=Path("/tmp/flexdof-glow"))
-    parser.add_argument("--top", type=int, default=10)
+    parser.add_argument("--out", type=Path, default=Path(__file__).resolve().parent / "results"
+                        / results)
+    parser.add_argument("--work", type=Path, default=Path("/tmp") / work)
     parser.add_argument(
         "--variant", action="append", default=[], help="flexdof flags to compare (repeatable)"
     )
+    return parser
+
+
+def main() -> None:
+    parser = variant_parser(__doc__.splitlines()[0], "highlights", "flexdof-glow")
+    parser.add_argument("--top", type=int, default=10)
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     args.work.mkdir(parents=True, exist_ok=True)
