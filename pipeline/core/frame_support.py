@@ -79,9 +79,9 @@ _TOTALS = np.float32([[1, 1, 1, 3 * CHROMA_FLOOR]] * 2)
 
 
 def chromaticity(pixels: np.ndarray) -> np.ndarray:
-    """``(R, B) / (R + G + B)`` of RGB ``pixels`` (last axis the channels; float32, the last
-    axis two long), each channel raised by ``CHROMA_FLOOR``: the colour apart from the
-    brightness (linear light; in [0, 1], neutral at 1/3)."""
+    """``(R, B) / (R + G + B)`` of RGB ``pixels`` (channels on the last axis), each channel
+    raised by ``CHROMA_FLOOR``: the colour apart from the brightness (linear light; in
+    [0, 1], neutral at 1/3). float32, two values on the last axis."""
     floor = np.float32(CHROMA_FLOOR)
     total = pixels.sum(axis=-1, keepdims=True, dtype=np.float32) + np.float32(3.0) * floor
     return (pixels[..., 0::2] + floor) / total
@@ -279,8 +279,8 @@ def clip_to_frames(
     bound is never below 0 (light is not negative), an upper bound at the end code
     65535 is open (frames at or beyond white), and pixels ``clipped`` in some frame keep
     no upper bound (the frames saw only that the scene is at least that
-    bright). An RGB image is then kept to the frames' range of colour differences as
-    well (:func:`_clip_colour`; where ``support`` has them). By strips of
+    bright). An RGB image is then kept to the frames' range of :func:`chromaticity` as
+    well (:func:`_clip_colour`; where ``support`` has it). By strips of
     ``CLIP_STRIP_ROWS`` rows (all channels at once, with OpenCV's threaded min/max: 90 ->
     25 ms on pcb10's 3 Mpx), so the bounds' float temporaries stay a strip's worth.
     """
