@@ -51,7 +51,9 @@ CONTRAST_FLOOR = 2.0 / 255.0  # detail std (display levels of 8-bit sRGB) below 
 # (nearest rounding, 1.5e-5 steps; a third of float32's memory and fast integer
 # min/max). The end codes mean "at or beyond": a range bound there is open.
 CODE_MAX = 65535
-ONE_CODE = (1.0, 1.0, 1.0, 1.0)  # a code added to every channel by cv2.add / cv2.subtract
+# a code added to every channel by cv2.add / cv2.subtract (a bare number changes only the
+# first channel under OpenCV 4's Python bindings: opencv/opencv#24057)
+ONE_CODE = (1.0, 1.0, 1.0, 1.0)
 CLIP_STRIP_ROWS = 256  # rows per strip of the clip (a strip's bounds: 2 x 6 MB at 2048 px RGB)
 
 
@@ -296,8 +298,7 @@ def clip_to_frames(
         inner = slice(r0 - a0, r0 - a0 + r1 - r0)
         low_codes = cv2.erode(lows[a0:a1], box, borderType=cv2.BORDER_REPLICATE)[inner]
         high_codes = cv2.dilate(highs[a0:a1], box, borderType=cv2.BORDER_REPLICATE)[inner]
-        # one code in every channel (a bare number is one channel's in OpenCV 4's bindings);
-        # 0 stays 0: light is never negative
+        # one code in every channel (``ONE_CODE``); 0 stays 0: light is never negative
         low = from_codes(cv2.subtract(low_codes, ONE_CODE))
         high = from_codes(cv2.add(high_codes, ONE_CODE))
         at_white = high_codes == CODE_MAX
@@ -337,8 +338,9 @@ def _clip_colour(out, low_codes, high_codes, unknown, low, high) -> None:
     moved = (outside[..., 0] | outside[..., 1]) & ~unknown
     if not moved.any():
         return
-    # the whole strip at once with OpenCV (a quarter of pcb10's pixels move, most by a
-    # little: per-pixel indexing took 0.18 s), then copied back where a pixel moved
+    # the whole strip at once with OpenCV, then copied back where a pixel moved: a quarter
+    # of pcb10's pixels move (by 0.001 of white at the median, 0.01 at the 90th percentile),
+    # and indexing them one by one took 0.18 s of its job, the strips 0.11 s
     kept = from_codes(cv2.min(cv2.max(codes, low_codes), high_codes))
     total = cv2.transform(out, _TOTALS[:1])  # R + G + B + 3 floor
     floor = float(CHROMA_FLOOR)

@@ -42,7 +42,7 @@ from scipy import fft as sfft
 TESTS = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(TESTS / "benchmarks"))
 
-from synthetic_guard import motorcycle_regions, run_job, scores  # noqa: E402
+from synthetic_guard import motorcycle_regions, print_and_save, run_job, scores  # noqa: E402
 
 from pipeline.core import multiframe  # noqa: E402
 from pipeline.core.deconvolve.common import _kernel_fft, _laplacian_spectrum  # noqa: E402
@@ -182,10 +182,7 @@ def main() -> None:
         cells = scores(image, truth, regions)
         lines.append(f"| {label} | " + " | ".join(cells)
                      + f" | {psnr(image, truth) - base:+.2f} |")
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    print_and_save(lines, args.out)
 
 
 if __name__ == "__main__":

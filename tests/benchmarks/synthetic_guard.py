@@ -152,6 +152,14 @@ def motorcycle_regions(sample: Path, truth):
     return {"near edge": near & inner, "away": far & inner}
 
 
+def print_and_save(lines: list[str], out: Path | None) -> None:
+    """Print a table's lines and, with ``out``, write them there."""
+    text = "\n".join(lines)
+    print(text)
+    if out:
+        out.write_text(text + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--out", type=Path)
@@ -198,10 +206,7 @@ def main() -> None:
     regions = motorcycle_regions(sample, truth)
     lines += evaluate("motorcycle (noisy)", sample, truth, sorted(sample.glob("frame_*.png")),
                       regions)
-    text = "\n".join(lines)
-    print(text)
-    if args.out:
-        args.out.write_text(text + "\n")
+    print_and_save(lines, args.out)
 
 
 if __name__ == "__main__":
