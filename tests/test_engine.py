@@ -168,12 +168,13 @@ def peak_memory(folder, n_frames, shape=(384, 384, 3)):
 
 
 def test_peak_memory_is_flat_in_the_number_of_frames(tmp_path):
-    # the least of two runs each: one run's peak moves by up to 3 frames with the threads'
-    # timing (8 frames: 12.2-15.7 frames' worth), the least of two by far less
+    # the least of three runs each: one run's peak moves by up to 3 frames with the threads'
+    # timing (8 frames: 12.2-15.7 frames' worth; since stop 35's colour statistics, 21.8-22.8
+    # and 32 frames 22.1-24.9), the least of three by far less
     peaks = {}
     for n in (8, 32):
         runs = []
-        for k in range(2):
+        for k in range(3):
             (tmp_path / f"{n}_{k}").mkdir()
             runs.append(peak_memory(tmp_path / f"{n}_{k}", n))
         peaks[n] = min(runs)
@@ -388,9 +389,12 @@ def test_float_frames_in_other_units_take_their_white_level(tmp_path, sharp, cap
     assert "check --white" in message
     assert unit.sidecar["frame_range"]["flat_fraction"] > 0
     assert given.sidecar["frame_range"] == unit.sidecar["frame_range"]
-    np.testing.assert_allclose(given.image, unit.image, atol=1e-5)  # measured 1.2e-6
+    # x * 1000 / 1000 is x to float32's rounding; where that rounding crosses a 16-bit code's
+    # edge, the colour bound moves a pixel by a code or two (3.1e-5 at 40 of 27648 values,
+    # since stop 35's colour differences; 1.2e-6 before)
+    np.testing.assert_allclose(given.image, unit.image, atol=5e-5)
     given_multi = run("given_multi.tif", white=1000.0, method="multiframe")
-    np.testing.assert_allclose(given_multi.image, unit_multi.image, atol=1e-5)
+    np.testing.assert_allclose(given_multi.image, unit_multi.image, atol=5e-5)
     assert np.max(np.abs(scaled.image / 1000.0 - unit.image)) > 0.01  # not so without it
     toml = folder / "stack.toml"
     toml.write_text("white = 1000\n" + toml.read_text())

@@ -23,12 +23,14 @@ def _frames(n=5, shape=(40, 56, 3), seed=0):
     return [rng.uniform(0.0, 1.0, shape).astype(np.float32) for _ in range(n)]
 
 
-def _chromaticity(image):
-    """(R, B) / (R + G + B) of each pixel, every channel raised by the documented floor
-    (float64, written out per channel)."""
+def _colour(image):
+    """(R, B) / (R + G + B) of each pixel, every channel raised by the documented floor,
+    then (R - G + 1) / 2 and (B - G + 1) / 2 (float64, written out per channel)."""
     f = fs.CHROMA_FLOOR
-    r, g, b = (image[..., c].astype(np.float64) + f for c in range(3))
-    return np.stack([r / (r + g + b), b / (r + g + b)], axis=-1)
+    r, g, b = (image[..., c].astype(np.float64) for c in range(3))
+    total = r + g + b + 3 * f
+    return np.stack([(r + f) / total, (b + f) / total, (r - g + 1) / 2, (b - g + 1) / 2],
+                    axis=-1)
 
 
 def _streamed(frames, order, full=True):
@@ -55,8 +57,8 @@ def test_streamed_range_and_sharpest_equal_brute_force(order):
     code = 0.5 / fs.CODE_MAX  # codes round to nearest
     np.testing.assert_allclose(fs.from_codes(got.low), stacked.min(axis=0), atol=code)
     np.testing.assert_allclose(fs.from_codes(got.high), stacked.max(axis=0), atol=code)
-    shares = np.stack([_chromaticity(f) for f in frames])
-    near = code + 1e-6  # float32's rounding of the shares on top of the codes'
+    shares = np.stack([_colour(f) for f in frames])
+    near = code + 1e-6  # float32's rounding of the colour on top of the codes'
     np.testing.assert_allclose(fs.from_codes(got.colour_low), shares.min(axis=0), atol=near)
     np.testing.assert_allclose(fs.from_codes(got.colour_high), shares.max(axis=0), atol=near)
     focus = np.stack([fs.focus_measure(fs.to_codes(f)) for f in frames])
@@ -136,11 +138,44 @@ def test_a_colour_no_frame_shows_takes_the_frames_colour_at_its_own_brightness()
     keep = np.ones((6, 7), bool)
     keep[3, 3] = keep[2, 5] = False
     np.testing.assert_array_equal(got[keep], image[keep])  # the frames' colour stays
-    # where a frame clipped, its colour says nothing: only the channels' range applies
-    clipped = np.zeros((6, 7), bool)
-    clipped[3, 3] = True
-    np.testing.assert_array_equal(fs.clip_to_frames(image.copy(), support, clipped)[3, 3],
-                                  image[3, 3])
+
+
+def test_a_bright_pixel_in_a_dark_frames_colour_takes_the_frames_differences():
+    # beside pcb10's white pads: one frame shows cream, clipped in red (at white), the
+    # other gold. A pixel as bright as the cream in the gold's chromaticity passes every
+    # channel's range and both ratios, but its blue falls 0.55 below its green where the
+    # frames' fall 0.20-0.28: saturated yellow. It keeps its sum 2.2 and takes the
+    # frames' largest fall; a frame at white shows its colour, so it is judged there too
+    cream = np.tile(np.float32([1.0, 0.95, 0.75]), (5, 6, 1))
+    gold = np.tile(np.float32([0.5, 0.4, 0.12]), (5, 6, 1))
+    support = _streamed([cream, gold], [0, 1])
+    clipped = np.ones((5, 6), bool)  # red at white in the cream frame, everywhere
+    image = cream.copy()
+    image[2, 3] = [0.95, 0.9, 0.35]
+    got = fs.clip_to_frames(image.copy(), support, clipped)
+    g = (2.2 - 0.05 + 0.28) / 3  # from the sum, R - G = 0.05 and B - G = -0.28
+    np.testing.assert_allclose(got[2, 3], [g + 0.05, g, g - 0.28], atol=2e-4)
+    keep = np.ones((5, 6), bool)
+    keep[2, 3] = False
+    np.testing.assert_array_equal(got[keep], image[keep])
+
+
+def test_beyond_white_the_displayed_colour_is_judged_and_the_value_beyond_kept():
+    # one frame white (1, 1, 1), one (1, 0.8, 0.8); red is at white in both, so its range
+    # is open. (1.4, 0.9, 0.9) shows (1, 0.9, 0.9), a colour between theirs: it stays,
+    # 1.4 included. (1.4, 0.8, 0.9) shows blue above green, which neither frame does:
+    # its displayed sum 2.7 is kept with B - G = 0, R - G = 0.2; red, rebuilt at 1.03,
+    # is displayed at white, so it keeps 1.4
+    white = np.ones((4, 5, 3), np.float32)
+    pink = np.tile(np.float32([1.0, 0.8, 0.8]), (4, 5, 1))
+    support = _streamed([white, pink], [0, 1])
+    image = pink.copy()
+    image[1, 1] = [1.4, 0.9, 0.9]
+    image[2, 3] = [1.4, 0.8, 0.9]
+    got = fs.clip_to_frames(image.copy(), support)
+    np.testing.assert_array_equal(got[1, 1], image[1, 1])
+    g = (2.7 - 0.2) / 3
+    np.testing.assert_allclose(got[2, 3], [1.4, g, g], atol=2e-4)
 
 
 @pytest.mark.parametrize("shape", [(30, 33, 3), (fs.CLIP_STRIP_ROWS + 5, 12, 3)])
@@ -158,20 +193,21 @@ def test_clip_to_frames_keeps_the_frames_colour_range_over_3x3(shape):
     low = ndimage.minimum_filter(stacked.min(axis=0), size=(3, 3, 1), mode="nearest")
     high = ndimage.maximum_filter(stacked.max(axis=0), size=(3, 3, 1), mode="nearest")
     high[clipped] = np.inf
-    shares = np.stack([_chromaticity(f) for f in frames])
+    shares = np.stack([_colour(f) for f in frames])
     share_low = ndimage.minimum_filter(shares.min(axis=0), size=(3, 3, 1), mode="nearest")
     share_high = ndimage.maximum_filter(shares.max(axis=0), size=(3, 3, 1), mode="nearest")
     tol = 1.5 / fs.CODE_MAX
     assert np.all(got >= low - tol) and np.all(got <= high + tol)  # channels: as before
-    share = _chromaticity(got)
+    share = _colour(got)
     outside = np.any((share < share_low - 1e-4) | (share > share_high + 1e-4), axis=2)
     at_bound = np.any((got <= low + tol) | (got >= high - tol), axis=2)
-    # a colour out of the frames' range is left only where a frame clipped, or where the
-    # channels' range, applied after the colour, holds the pixel
-    assert not np.any(outside & ~clipped & ~at_bound)
-    before = _chromaticity(np.clip(image, low, high))
-    was_out = np.any((before < share_low) | (before > share_high), axis=2) & ~clipped
-    assert was_out.mean() > 0.3 and outside[~clipped].mean() < 0.2 * was_out.mean()
+    # a colour out of the frames' range is left only where the channels' range, applied
+    # after the colour, holds the pixel; clipped pixels (only their channels' upper bound
+    # is open) included
+    assert not np.any(outside & ~at_bound)
+    before = _colour(np.clip(image, low, high))
+    was_out = np.any((before < share_low) | (before > share_high), axis=2)
+    assert was_out.mean() > 0.3 and outside.mean() < 0.2 * was_out.mean()
     moved = was_out & ~at_bound  # the sum is kept where the channels' range let it be
     sums = got.sum(axis=2), np.clip(image, low, high).sum(axis=2)
     np.testing.assert_allclose(sums[0][moved], sums[1][moved], atol=3 * tol)  # codes' slack

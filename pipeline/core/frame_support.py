@@ -8,8 +8,8 @@ rims and dark moats (values outside every frame's), or a softer result than the 
 focused there. A true all-in-focus image is, at each pixel, one of the frames (the one
 in focus there), so
 
-* it never leaves ``[min, max]`` of the frames near that pixel
-  (:func:`clip_to_frames`; a 3x3 neighbourhood is the registration slack), and
+* it never leaves ``[min, max]`` of the frames near that pixel, in each channel and in
+  colour (:func:`clip_to_frames`; a 3x3 neighbourhood is the registration slack), and
 * where the sharpest frame holds more local contrast than the restoration, above the
   noise, the frame is the better estimate (:func:`prefer_sharpest`).
 
@@ -54,6 +54,11 @@ CODE_MAX = 65535
 # a code added to every channel by cv2.add / cv2.subtract (a bare number changes only the
 # first channel under OpenCV 4's Python bindings: opencv/opencv#24057)
 ONE_CODE = (1.0, 1.0, 1.0, 1.0)
+_WHITE = (1.0, 1.0, 1.0, 1.0)  # white in every channel, for the same reason
+# rounds of the colour's two bounds, each kept in turn at a kept sum: one round left 0.9%
+# of random pixels out of the ratios' range by up to 0.07; two leave none out by more than
+# two codes (tests/test_frame_support.py)
+COLOUR_ROUNDS = 2
 CLIP_STRIP_ROWS = 256  # rows per strip of the clip (a strip's bounds: 2 x 6 MB at 2048 px RGB)
 
 
@@ -78,6 +83,11 @@ CHROMA_FLOOR = 2e-4
 # (R, B) + floor and (R + G + B) + 3 floor, twice, as cv2.transform matrices
 _SHARES = np.float32([[1, 0, 0, CHROMA_FLOOR], [0, 0, 1, CHROMA_FLOOR]])
 _TOTALS = np.float32([[1, 1, 1, 3 * CHROMA_FLOOR]] * 2)
+# (R - G + 1) / 2 and (B - G + 1) / 2: the colour differences as values in [0, 1] for
+# frames in [0, 1]
+_DIFFERENCES = np.float32([[0.5, -0.5, 0, 0.5], [0, -0.5, 0.5, 0.5]])
+# RGB from (R + G + B, R - G, B - G)
+_FROM_SUM_AND_DIFFERENCES = np.float32([[1, 2, -1], [1, -1, -1], [1, -1, 2]]) / 3
 
 
 def chromaticity(pixels: np.ndarray) -> np.ndarray:
@@ -89,16 +99,25 @@ def chromaticity(pixels: np.ndarray) -> np.ndarray:
     return (pixels[..., 0::2] + floor) / total
 
 
-def chromaticity_codes(image: np.ndarray) -> np.ndarray:
-    """:func:`chromaticity` of an RGB image as 16-bit codes (rows, cols, 2), by strips of
-    ``CLIP_STRIP_ROWS`` with OpenCV (a third of numpy's time on 3 Mpx, a strip's worth of
-    float temporaries)."""
-    out = np.empty((*image.shape[:2], 2), np.uint16)
+def colour_codes(image: np.ndarray) -> np.ndarray:
+    """16-bit codes (rows, cols, 4) of an RGB image's colour: its :func:`chromaticity`
+    ``(R, B) / (R + G + B)``, then its colour differences ``(R - G + 1) / 2`` and ``(B - G
+    + 1) / 2`` (linear light). By strips of ``CLIP_STRIP_ROWS`` with OpenCV (a third of
+    numpy's time on 3 Mpx, a strip's worth of float temporaries).
+
+    The two pairs bound a colour where the other cannot: the ratio at dark pixels (a dark
+    pixel with a bright one's difference is far more saturated than it), the difference
+    at bright ones (a bright pixel with a dark one's ratio is: beside pcb10's highlights,
+    cream frames and gold ones, a result of the cream's brightness in the gold's
+    chromaticity read saturated yellow).
+    """
+    out = np.empty((*image.shape[:2], 4), np.uint16)
     for r0 in range(0, image.shape[0], CLIP_STRIP_ROWS):
         strip = np.ascontiguousarray(image[r0 : r0 + CLIP_STRIP_ROWS], dtype=np.float32)
-        out[r0 : r0 + CLIP_STRIP_ROWS] = cv2.divide(
-            cv2.transform(strip, _SHARES), cv2.transform(strip, _TOTALS),
-            scale=float(CODE_MAX), dtype=cv2.CV_16U,
+        shares = cv2.divide(cv2.transform(strip, _SHARES), cv2.transform(strip, _TOTALS))
+        out[r0 : r0 + CLIP_STRIP_ROWS] = cv2.multiply(
+            cv2.merge([shares, cv2.transform(strip, _DIFFERENCES)]), float(CODE_MAX),
+            dtype=cv2.CV_16U,
         )
     return out
 
@@ -117,9 +136,10 @@ class FrameSupport:
         Per block, the frame with the best focus measure (codes).
     noise : list of ndarray
         Each frame's noise std per channel (:func:`frame_noise`).
-    colour_low, colour_high : ndarray (rows, cols, 2), uint16, or None
-        Per-pixel minimum and maximum over the frames of their :func:`chromaticity`, as
-        codes; ``None`` for frames that are not RGB.
+    colour_low, colour_high : ndarray (rows, cols, 4), uint16, or None
+        Per-pixel minimum and maximum over the frames of their colour
+        (:func:`colour_codes`: chromaticity and colour differences); ``None`` for frames
+        that are not RGB.
     """
 
     low: np.ndarray
@@ -137,7 +157,7 @@ class FrameSupport:
         :func:`clip_to_frames` needs."""
         codes = to_codes(frame)  # one array for all three until a merge writes
         rgb = frame.ndim == 3 and frame.shape[2] == 3
-        colour = chromaticity_codes(frame) if rgb else None
+        colour = colour_codes(frame) if rgb else None
         if not full:
             return cls(codes, codes, None, None, [], colour, colour)
         noise = [frame_noise(frame, valid)]
@@ -281,8 +301,8 @@ def clip_to_frames(
     bound is never below 0 (light is not negative), an upper bound at the end code
     65535 is open (frames at or beyond white), and pixels ``clipped`` in some frame keep
     no upper bound (the frames saw only that the scene is at least that
-    bright). An RGB image is then kept to the frames' range of :func:`chromaticity` as
-    well (:func:`_clip_colour`; where ``support`` has it). By strips of
+    bright). An RGB image is then kept to the frames' range of displayed colour as well
+    (:func:`_clip_colour`; where ``support`` has it). By strips of
     ``CLIP_STRIP_ROWS`` rows (all channels at once, with OpenCV's threaded min/max: 90 ->
     25 ms on pcb10's 3 Mpx), so the bounds' float temporaries stay a strip's worth.
     """
@@ -309,47 +329,78 @@ def clip_to_frames(
         cv2.max(out, low, dst=out)
         cv2.min(out, high, dst=out)
         if colour:
-            unknown = at_white.any(axis=2)
-            if clipped is not None:
-                unknown |= clipped[r0:r1]
             colour_low = cv2.erode(colour_lows[a0:a1], box, borderType=cv2.BORDER_REPLICATE)
             colour_high = cv2.dilate(colour_highs[a0:a1], box, borderType=cv2.BORDER_REPLICATE)
-            _clip_colour(out, colour_low[inner], colour_high[inner], unknown, low, high)
+            _clip_colour(out, colour_low[inner], colour_high[inner], low, high)
     return image
 
 
-def _clip_colour(out, low_codes, high_codes, unknown, low, high) -> None:
-    """Keep the RGB strip ``out``'s :func:`chromaticity` within the frames' range (codes
-    over the neighbourhood; open where ``unknown``), each moved pixel keeping its sum ``R
-    + G + B``; then ``out`` is clipped to the channels' range ``[low, high]`` again. In
-    place. The pixels are compared as codes made by the frames' own function
-    (:func:`chromaticity_codes`), so a frame's colour always passes: no code of slack.
+def _clip_colour(out, low_codes, high_codes, low, high) -> None:
+    """Keep the RGB strip ``out``'s displayed colour (:func:`colour_codes` of ``out``
+    capped at white) within the frames' range (codes over the neighbourhood), each moved
+    pixel keeping its capped sum ``R + G + B``: first its chromaticity, then its colour
+    differences; then ``out`` is clipped to the channels' range ``[low, high]`` again,
+    and a channel the rebuild leaves at or beyond white keeps its value beyond. In place.
+    The pixels are compared as codes made by the frames' own function, so a frame's
+    colour always passes: no code of slack.
 
     The per-channel range alone admits colours no frame shows: beside a clipped highlight
     each channel's deconvolution undershoots by its own amount, so a pixel may take the
     frames' highest red and their lowest green and blue (orange and red rims on pcb7's
-    pins; 0.1-1.4% of the real stacks' pixels more than 10 levels out of the frames'
-    colour range). A true all-in-focus pixel is one of the frames', colour included. The
-    colour is a ratio, not a difference: a dark pixel with a bright one's ``R - G`` is
-    far more saturated than any frame.
+    pins; yellow ones beside pcb10's white pads; 0.1-1.4% of the real stacks' pixels more
+    than 10 levels out of the frames' colour range). A true all-in-focus pixel is one of
+    the frames', colour included. The frames are decoded up to white, so their colours
+    are the displayed ones, clipped frames included: what the result shows is judged
+    against what they show, wherever they clipped (stop 34 left the colour open there,
+    and two thirds of pcb10's remaining fringes were those pixels). At a kept sum the
+    ratios are two bands in the differences, and the differences a box: each is kept in
+    turn, for ``COLOUR_ROUNDS`` rounds.
     """
-    codes = chromaticity_codes(out)
+    capped = cv2.min(out, _WHITE)
+    codes = colour_codes(capped)
     outside = (codes < low_codes) | (codes > high_codes)
-    moved = (outside[..., 0] | outside[..., 1]) & ~unknown
+    moved = outside.any(axis=2)
     if not moved.any():
         return
     # the whole strip at once with OpenCV, then copied back where a pixel moved: a quarter
     # of pcb10's pixels move (by 0.001 of white at the median, 0.01 at the 90th percentile),
     # and indexing them one by one took 0.18 s of its job, the strips 0.11 s
-    kept = from_codes(cv2.min(cv2.max(codes, low_codes), high_codes))
-    total = cv2.transform(out, _TOTALS[:1])  # R + G + B + 3 floor
-    floor = float(CHROMA_FLOOR)
-    red_blue = cv2.multiply(kept, cv2.merge([total, total]))
-    red, blue = (cv2.subtract(c, floor) for c in cv2.split(red_blue))
-    green = cv2.subtract(cv2.subtract(cv2.subtract(total, red), blue), 3.0 * floor)
-    rebuilt = cv2.merge([red, green, blue])
+    plain_total = cv2.transform(capped, _TOTALS[:1, :3])  # R + G + B, kept throughout
+    rebuilt = _with_kept_colour(codes, low_codes, high_codes, plain_total)
+    for _ in range(COLOUR_ROUNDS - 1):
+        rebuilt = _with_kept_colour(colour_codes(rebuilt), low_codes, high_codes, plain_total)
     rebuilt = cv2.min(cv2.max(rebuilt, low), high)
+    beyond = (rebuilt >= 1.0).view(np.uint8)  # displayed at white: the value beyond stays
+    cv2.copyTo(cv2.max(rebuilt, out), beyond, rebuilt)
     cv2.copyTo(rebuilt, moved.astype(np.uint8), out)
+
+
+def _with_kept_colour(codes, low_codes, high_codes, plain_total):
+    """One round: RGB pixels of :func:`colour_codes` ``codes`` at the sum ``plain_total``,
+    their chromaticity kept to ``[low_codes, high_codes]``, then their differences."""
+    pixels = _with_kept_shares(codes, low_codes, high_codes, plain_total)
+    return _with_kept_differences(pixels, low_codes, high_codes, plain_total)
+
+
+def _with_kept_shares(codes, low_codes, high_codes, plain_total):
+    """RGB pixels of :func:`colour_codes` ``codes`` at the sum ``plain_total``, with the
+    chromaticity kept to ``[low_codes, high_codes]``."""
+    kept = from_codes(cv2.min(cv2.max(codes, low_codes), high_codes))
+    total = cv2.add(plain_total, 3.0 * CHROMA_FLOOR)
+    red_blue = cv2.multiply(np.ascontiguousarray(kept[..., :2]), cv2.merge([total, total]))
+    red, blue = (cv2.subtract(c, float(CHROMA_FLOOR)) for c in cv2.split(red_blue))
+    green = cv2.subtract(cv2.subtract(plain_total, red), blue)
+    return cv2.merge([red, green, blue])
+
+
+def _with_kept_differences(pixels, low_codes, high_codes, plain_total):
+    """RGB ``pixels`` at their sum ``plain_total`` with the colour differences kept to the
+    last two channels of ``[low_codes, high_codes]``."""
+    codes = cv2.multiply(cv2.transform(pixels, _DIFFERENCES), float(CODE_MAX), dtype=cv2.CV_16U)
+    kept = from_codes(cv2.min(cv2.max(codes, low_codes[..., 2:]), high_codes[..., 2:]))
+    red_green, blue_green = (cv2.subtract(cv2.multiply(c, 2.0), 1.0) for c in cv2.split(kept))
+    return cv2.transform(cv2.merge([plain_total, red_green, blue_green]),
+                         _FROM_SUM_AND_DIFFERENCES)
 
 
 # Flat areas: where the frames' per-pixel max and min images both hold less fine detail
