@@ -86,8 +86,9 @@ _TOTALS = np.float32([[1, 1, 1, 3 * CHROMA_FLOOR]] * 2)
 # (R - G + 1) / 2 and (B - G + 1) / 2: the colour differences as values in [0, 1] for
 # frames in [0, 1]
 _DIFFERENCES = np.float32([[0.5, -0.5, 0, 0.5], [0, -0.5, 0.5, 0.5]])
-# RGB from (R + G + B, R - G, B - G)
-_FROM_SUM_AND_DIFFERENCES = np.float32([[1, 2, -1], [1, -1, -1], [1, -1, 2]]) / 3
+# at a kept sum S: (R - G, B - G) + S of (R, B), and (R, B) - S / 3 of (R - G, B - G)
+_DIFFERENCES_OF_RED_BLUE = np.float32([[2, 1], [1, 2]])
+_RED_BLUE_OF_DIFFERENCES = np.float32([[2, -1], [-1, 2]]) / 3
 
 
 def chromaticity(pixels: np.ndarray) -> np.ndarray:
@@ -357,50 +358,48 @@ def _clip_colour(out, low_codes, high_codes, low, high) -> None:
     turn, for ``COLOUR_ROUNDS`` rounds.
     """
     capped = cv2.min(out, _WHITE)
-    codes = colour_codes(capped)
-    outside = (codes < low_codes) | (codes > high_codes)
-    moved = outside.any(axis=2)
+    moved = cv2.inRange(colour_codes(capped), low_codes, high_codes) == 0
     if not moved.any():
         return
-    # the whole strip at once with OpenCV, then copied back where a pixel moved: a quarter
-    # of pcb10's pixels move (by 0.001 of white at the median, 0.01 at the 90th percentile),
-    # and indexing them one by one took 0.18 s of its job, the strips 0.11 s
-    plain_total = cv2.transform(capped, _TOTALS[:1, :3])  # R + G + B, kept throughout
-    rebuilt = _with_kept_colour(codes, low_codes, high_codes, plain_total)
-    for _ in range(COLOUR_ROUNDS - 1):
-        rebuilt = _with_kept_colour(colour_codes(rebuilt), low_codes, high_codes, plain_total)
+    # the whole strip at once with OpenCV, then copied back where a pixel moved (a third of
+    # pcb10's pixels, most by a little; indexing them one by one was slower at stop 34)
+    rebuilt = _kept_colour(capped, from_codes(low_codes), from_codes(high_codes))
     rebuilt = cv2.min(cv2.max(rebuilt, low), high)
     beyond = (rebuilt >= 1.0).view(np.uint8)  # displayed at white: the value beyond stays
     cv2.copyTo(cv2.max(rebuilt, out), beyond, rebuilt)
     cv2.copyTo(rebuilt, moved.astype(np.uint8), out)
 
 
-def _with_kept_colour(codes, low_codes, high_codes, plain_total):
-    """One round: RGB pixels of :func:`colour_codes` ``codes`` at the sum ``plain_total``,
-    their chromaticity kept to ``[low_codes, high_codes]``, then their differences."""
-    pixels = _with_kept_shares(codes, low_codes, high_codes, plain_total)
-    return _with_kept_differences(pixels, low_codes, high_codes, plain_total)
+def _kept_colour(pixels, low, high):
+    """RGB ``pixels`` at their sum ``S = R + G + B``, with their chromaticity and colour
+    differences kept to ``[low, high]`` (the four values of :func:`colour_codes`, linear).
 
+    At a kept sum a pixel is its ``(R, B)`` (``G = S - R - B``): the ratios bound them to
+    ``[r_low T - f, r_high T - f]`` (``f`` the floor, ``T = S + 3 f``), a box, and the
+    differences are ``R - G = 2 R + B - S``, ``B - G = R + 2 B - S``, whose box maps back
+    by ``R = (S + 2 (R - G) - (B - G)) / 3``, ``B = (S - (R - G) + 2 (B - G)) / 3``. Each
+    box is kept in turn, for ``COLOUR_ROUNDS`` rounds."""
+    floor = float(CHROMA_FLOOR)
+    plain_total = cv2.transform(pixels, _TOTALS[:1, :3])
+    sums = cv2.merge([plain_total, plain_total])
+    totals = cv2.add(sums, (3.0 * floor,) * 4)
 
-def _with_kept_shares(codes, low_codes, high_codes, plain_total):
-    """RGB pixels of :func:`colour_codes` ``codes`` at the sum ``plain_total``, with the
-    chromaticity kept to ``[low_codes, high_codes]``."""
-    kept = from_codes(cv2.min(cv2.max(codes, low_codes), high_codes))
-    total = cv2.add(plain_total, 3.0 * CHROMA_FLOOR)
-    red_blue = cv2.multiply(np.ascontiguousarray(kept[..., :2]), cv2.merge([total, total]))
-    red, blue = (cv2.subtract(c, float(CHROMA_FLOOR)) for c in cv2.split(red_blue))
-    green = cv2.subtract(cv2.subtract(plain_total, red), blue)
-    return cv2.merge([red, green, blue])
+    def halves(bounds):
+        shares, differences = bounds[..., :2], bounds[..., 2:]
+        red_blue = cv2.subtract(cv2.multiply(np.ascontiguousarray(shares), totals), (floor,) * 4)
+        return red_blue, cv2.subtract(cv2.multiply(np.ascontiguousarray(differences), (2.0,) * 4),
+                                      (1.0,) * 4)
 
-
-def _with_kept_differences(pixels, low_codes, high_codes, plain_total):
-    """RGB ``pixels`` at their sum ``plain_total`` with the colour differences kept to the
-    last two channels of ``[low_codes, high_codes]``."""
-    codes = cv2.multiply(cv2.transform(pixels, _DIFFERENCES), float(CODE_MAX), dtype=cv2.CV_16U)
-    kept = from_codes(cv2.min(cv2.max(codes, low_codes[..., 2:]), high_codes[..., 2:]))
-    red_green, blue_green = (cv2.subtract(cv2.multiply(c, 2.0), 1.0) for c in cv2.split(kept))
-    return cv2.transform(cv2.merge([plain_total, red_green, blue_green]),
-                         _FROM_SUM_AND_DIFFERENCES)
+    (low_rb, low_d), (high_rb, high_d) = halves(low), halves(high)
+    red_blue = np.ascontiguousarray(pixels[..., 0::2])
+    thirds = cv2.multiply(sums, (1.0 / 3.0,) * 4)
+    for _ in range(COLOUR_ROUNDS):
+        red_blue = cv2.min(cv2.max(red_blue, low_rb), high_rb)
+        differences = cv2.subtract(cv2.transform(red_blue, _DIFFERENCES_OF_RED_BLUE), sums)
+        differences = cv2.min(cv2.max(differences, low_d), high_d)
+        red_blue = cv2.add(cv2.transform(differences, _RED_BLUE_OF_DIFFERENCES), thirds)
+    red, blue = cv2.split(red_blue)
+    return cv2.merge([red, cv2.subtract(cv2.subtract(plain_total, red), blue), blue])
 
 
 # Flat areas: where the frames' per-pixel max and min images both hold less fine detail

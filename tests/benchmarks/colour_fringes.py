@@ -20,7 +20,10 @@ common area less a 20 px border:
 
 The frames' composite (per pixel the frame with the most Laplacian energy, the region
 benchmark's) is the check of the measure: made of frames' pixels, it reads about 0.
-Writes ``DIR/colour_fringes.md`` and ``DIR/colour_fringes.json``.
+Writes ``DIR/colour_fringes.md``, ``DIR/colour_fringes.json`` and ``DIR/NAME_fringes.png``:
+the ``CROPS`` windows of ``2 CROP_HALF`` px with the most of flexdof's pixels over
+``FRINGE_LEVELS`` (flexdof | each variant | focus-stack | the frames' composite, 4x
+nearest-neighbour).
 """
 
 from __future__ import annotations
@@ -33,13 +36,15 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from highlight_glow import run_beside_peer, variant_parser
+from highlight_glow import crop_row, run_beside_peer, save_grid, variant_parser
 from real_stack_regions import frames_composite
 from real_stacks import STACKS
 
 SLACK_PX = 2  # 5x5, as the halo measure's
 BORDER_PX = 20
 FRINGE_LEVELS = 10.0
+CROPS = 3
+CROP_HALF = 30
 
 
 def colour_excess(image: np.ndarray, frames: list[np.ndarray]) -> np.ndarray:
@@ -56,15 +61,37 @@ def colour_excess(image: np.ndarray, frames: list[np.ndarray]) -> np.ndarray:
     return excess
 
 
-def measure(name: str, pattern: str, work: Path, variants: list[str]) -> dict:
+def fringe_windows(fringes: np.ndarray, count: int, half: int) -> list[tuple[int, int]]:
+    """Centres (row, column) of up to ``count`` non-overlapping ``2 half`` px windows with
+    the most ``fringes`` pixels, densest first (windows with none are left out)."""
+    density = cv2.boxFilter(fringes.astype(np.float32), -1, (2 * half + 1,) * 2,
+                            normalize=False)
+    rows, cols = density.shape
+    density[:half], density[rows - half:], density[:, :half], density[:, cols - half:] = 0, 0, 0, 0
+    centres = []
+    while len(centres) < count and density.max() > 0:
+        y, x = np.unravel_index(int(np.argmax(density)), density.shape)
+        centres.append((int(y), int(x)))
+        density[max(0, y - 2 * half) : y + 2 * half, max(0, x - 2 * half) : x + 2 * half] = 0
+    return centres
+
+
+def measure(name: str, pattern: str, work: Path, variants: list[str], out: Path) -> dict:
     images, frames, cover, _ = run_beside_peer(name, pattern, work, variants)
     images["frames' composite"] = frames_composite(frames)
     inner = cv2.erode(cover.astype(np.uint8), np.ones((2 * BORDER_PX + 1,) * 2, np.uint8)) > 0
-    row = {}
+    row, fringes = {}, None
     for label, image in images.items():
-        excess = colour_excess(image, frames)[inner]
+        excess = colour_excess(image, frames)
+        if fringes is None:  # flexdof's, the first
+            fringes = (excess > FRINGE_LEVELS) & inner
+        excess = excess[inner]
         row[label] = {"mean": float(excess.mean()),
                       "per_10k": float(np.mean(excess > FRINGE_LEVELS) * 1e4)}
+    crops = [crop_row(list(images.values()), centre, CROP_HALF)
+             for centre in fringe_windows(fringes, CROPS, CROP_HALF)]
+    if crops:
+        save_grid(out / f"{name}_fringes.png", crops, 4)
     return row
 
 
@@ -72,7 +99,7 @@ def main() -> None:
     args = variant_parser(__doc__.splitlines()[0], "colour", "flexdof-colour").parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
     args.work.mkdir(parents=True, exist_ok=True)
-    summary = {name: measure(name, STACKS[name], args.work, args.variant)
+    summary = {name: measure(name, STACKS[name], args.work, args.variant, args.out)
                for name in args.stacks.split(",")}
     labels = list(next(iter(summary.values())))
     lines = [

@@ -140,14 +140,25 @@ def measure(
         y, x = row["at"][1], row["at"][0]
         inside = CROP_HALF <= y < shape[0] - CROP_HALF and CROP_HALF <= x < shape[1] - CROP_HALF
         if len(crops) < 4 and inside:
-            box = (slice(y - CROP_HALF, y + CROP_HALF), slice(x - CROP_HALF, x + CROP_HALF))
-            tiles = [results[k][box] for k in results] + [frames[sharpest][box]]
-            crops.append(np.hstack([np.clip(t, 0, 255).astype(np.uint8)[..., ::-1] for t in tiles]))
+            crops.append(crop_row([*results.values(), frames[sharpest]], (y, x), CROP_HALF))
     if crops:
-        grid = np.vstack(crops)
-        grid = cv2.resize(grid, None, fx=3, fy=3, interpolation=cv2.INTER_NEAREST)
-        cv2.imwrite(str(out / f"{name}_glow.png"), grid)
+        save_grid(out / f"{name}_glow.png", crops, 3)
     return rows
+
+
+def crop_row(images: list[np.ndarray], centre: tuple[int, int], half: int) -> np.ndarray:
+    """The ``2 half`` px square round ``centre`` (row, column) of each image, side by side
+    (8-bit, RGB)."""
+    y, x = centre
+    box = (slice(y - half, y + half), slice(x - half, x + half))
+    return np.hstack([np.clip(image[box], 0, 255).astype(np.uint8) for image in images])
+
+
+def save_grid(path: Path, rows: list[np.ndarray], scale: int) -> None:
+    """Rows of :func:`crop_row` one above the other, ``scale`` x nearest-neighbour, as a
+    PNG."""
+    grid = cv2.resize(np.vstack(rows), None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+    cv2.imwrite(str(path), grid[..., ::-1])
 
 
 def variant_parser(description: str, results: str, work: str) -> argparse.ArgumentParser:
