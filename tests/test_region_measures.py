@@ -117,3 +117,20 @@ def test_verdicts_have_tolerances():
     assert rm.at_least_as_good("halo", 0.3, 0.2) is True
     assert rm.at_least_as_good("halo", 2.0, 0.2) is False
     assert rm.at_least_as_good("halo", np.nan, 0.2) is None
+
+
+def test_paired_sharpness_compares_the_same_edges(stack):
+    # the in-focus frame against itself: no difference; against its blur, narrower at most
+    # edges; the order of the two matters (a flipped sign would read the soft one as sharp)
+    ref, frames = stack
+    clean = frames[0]
+    same = ref.paired_sharpness(clean, clean)
+    measured = np.isfinite(same[:, 0])
+    assert measured.sum() >= 5
+    assert np.all(same[measured, 0] == 0) and np.all(same[measured, 1:] == 0)
+    soft = _blur(clean, 2.0)
+    paired = ref.paired_sharpness(clean, soft)[measured]
+    assert np.all(paired[:, 0] < -1.0) and np.all(paired[:, 1] > 0.8)
+    flipped = ref.paired_sharpness(soft, clean)[measured]
+    np.testing.assert_allclose(flipped[:, 0], -paired[:, 0])
+    np.testing.assert_allclose(flipped[:, 2], paired[:, 1])

@@ -329,6 +329,11 @@ def evaluate(
     # (a plain focus stacker)
     scores["frame composite"] = ref.measure(composite)
     scores = {m: {k: v.tolist() for k, v in s.items()} for m, s in scores.items()}
+    paired = {
+        peer: ref.paired_sharpness(flex, methods[peer]).tolist()
+        for peer in ("focus-stack", AS_SHOT_PEER)
+        if peer in methods
+    }
     # PSNR (8-bit sRGB levels, common area) of every other image against each extra image
     fidelity = {
         k: {m: _psnr(img, methods[k], ref.valid) for m, img in methods.items() if m != k}
@@ -389,6 +394,7 @@ def evaluate(
         "maxdiff_window": {"row": corner[0], "col": corner[1], "size": size},
         "region_windows": per_region,
         "scores": scores,
+        "sharpness_paired": paired,
         "psnr_against": fidelity,
         "seconds": time.perf_counter() - t0,
     }
@@ -502,11 +508,37 @@ def report(results: dict, args) -> str:
                 )
                 lines.append(f"| {REGION_NAMES[r]} | " + " | ".join(vals) + f" | {v} |")
             lines.append("")
+        lines += paired_table(res.get("sharpness_paired", {}))
         a, n = good_regions(s)
         lines.append(
             f"flexdof at least as good as focus-stack on every measure in **{a}/{n}** regions."
         )
     return "\n".join(lines) + "\n"
+
+
+def paired_table(paired: dict) -> list[str]:
+    """The sharpness table paired on the same edges (``Reference.paired_sharpness``): per
+    region and peer, flexdof's median width minus the peer's, and the shares of edges
+    where flexdof is narrower / wider. A diagnostic beside the verdicts, which stay on the
+    regions' medians."""
+    if not paired:
+        return []
+    peers = list(paired)
+    lines = [
+        "**sharpness, paired on the same edges** (flexdof minus the peer, px; shares of the "
+        "edges where flexdof is narrower / wider)",
+        "",
+        "| region | " + " | ".join(peers) + " |",
+        "|---" * (len(peers) + 1) + "|",
+    ]
+    for r in range(GRID * GRID):
+        cells = []
+        for peer in peers:
+            median, narrower, wider = paired[peer][r]
+            cells.append("-" if not np.isfinite(median)
+                         else f"{median:+.2f} ({narrower:.0%} / {wider:.0%})")
+        lines.append(f"| {REGION_NAMES[r]} | " + " | ".join(cells) + " |")
+    return [*lines, ""]
 
 
 def output_folders(args) -> Path:
