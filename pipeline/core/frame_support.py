@@ -82,19 +82,10 @@ def from_codes(codes: np.ndarray) -> np.ndarray:
 CHROMA_FLOOR = 2e-4
 
 
-def chromaticity(pixels: np.ndarray) -> np.ndarray:
-    """``(R, B) / (R + G + B)`` of RGB ``pixels`` (channels on the last axis), each channel
-    raised by ``CHROMA_FLOOR``: the colour apart from the brightness (linear light; in
-    [0, 1], neutral at 1/3). float32, two values on the last axis."""
-    floor = np.float32(CHROMA_FLOOR)
-    total = pixels.sum(axis=-1, keepdims=True, dtype=np.float32) + np.float32(3.0) * floor
-    return (pixels[..., 0::2] + floor) / total
-
-
 def colour_codes(image: np.ndarray) -> np.ndarray:
-    """16-bit codes (rows, cols, 4) of an RGB image's colour: its :func:`chromaticity`
-    ``(R, B) / (R + G + B)``, then its colour differences ``(R - G + 1) / 2`` and ``(B - G
-    + 1) / 2`` (linear light). By strips of ``CLIP_STRIP_ROWS`` with OpenCV, one channel at
+    """16-bit codes (rows, cols, 4) of an RGB image's colour: its chromaticity ``(R, B) /
+    (R + G + B)``, each channel raised by ``CHROMA_FLOOR`` (neutral at 1/3), then its colour
+    differences ``(R - G + 1) / 2`` and ``(B - G + 1) / 2`` (linear light). By strips of ``CLIP_STRIP_ROWS`` with OpenCV, one channel at
     a time (0.013 s on 3 Mpx: a ninth of numpy's time, a sixth of ``cv2.transform``'s into
     two and four channels; a strip's worth of float temporaries).
 

@@ -32,7 +32,7 @@ blends to the caller's fallback (the main job's Sec. 9 result, whose kernel is t
 for every depth): :func:`restore`.
 
 On the synthetic scenes of issue 13 this gains 1.1-2.9 dB over the default on five of the
-seven noisy ones (+0.56 and +0.64 on the other two), at 2.0-2.9x its time
+seven noisy ones (+0.56 and +0.59 on the other two), at 2.1-2.6x its time
 (``tests/benchmarks/results/real_regions/synthetic_guard.md``); on the
 real JPEG stacks, whose blur the per-frame pillbox model fits only roughly, it does not
 beat the default (``tests/benchmarks/results/quality_method/README.md``).
