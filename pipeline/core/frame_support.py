@@ -85,9 +85,10 @@ CHROMA_FLOOR = 2e-4
 def colour_codes(image: np.ndarray) -> np.ndarray:
     """16-bit codes (rows, cols, 4) of an RGB image's colour: its chromaticity ``(R, B) /
     (R + G + B)``, each channel raised by ``CHROMA_FLOOR`` (neutral at 1/3), then its colour
-    differences ``(R - G + 1) / 2`` and ``(B - G + 1) / 2`` (linear light). By strips of ``CLIP_STRIP_ROWS`` with OpenCV, one channel at
-    a time (0.013 s on 3 Mpx: a ninth of numpy's time, a sixth of ``cv2.transform``'s into
-    two and four channels; a strip's worth of float temporaries).
+    differences ``(R - G + 1) / 2`` and ``(B - G + 1) / 2`` (linear light). By strips of
+    ``CLIP_STRIP_ROWS`` with OpenCV, one channel at a time (0.013 s on 3 Mpx: a ninth of
+    numpy's time, a sixth of ``cv2.transform``'s into two and four channels; a strip's
+    worth of float temporaries).
 
     The two pairs bound a colour where the other cannot: the ratio at dark pixels (a dark
     pixel with a bright one's difference is far more saturated than it), the difference
