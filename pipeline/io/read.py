@@ -17,7 +17,8 @@ linear before they are averaged:
   A 16-bit TIFF written by :func:`write_image` with ``encoding="linear16"`` is
   marked as linear in its ImageDescription and is read back as linear.
 * Pixels are returned as stored: EXIF orientation is not applied (RAW is
-  decoded in sensor orientation), so all frames of one camera line up. An alpha
+  decoded in sensor orientation, reduced JPEG decodes too), so all frames of one camera
+  line up; the result is turned upright when written (:mod:`pipeline.io.orientation`). An alpha
   channel is dropped; multi-page TIFFs give their first page.
 
 Writers encode linear float images; integer formats clip to [0, 1] at encoding
@@ -164,7 +165,8 @@ def read_preview(path: str | Path, max_side_px: int, *, white: float | None = No
         }[factor]
         data = p.read_bytes()
         _jpeg_structure(data, p)
-        decoded = _imdecode_jpeg(data, flags, p)
+        # as stored, as read_frame decodes it (a reduced decode applies the EXIF orientation)
+        decoded = _imdecode_jpeg(data, flags | cv2.IMREAD_IGNORE_ORIENTATION, p)
         if decoded is None:
             raise InputError(f"{p}: OpenCV cannot decode it (corrupt JPEG data)")
         image = _decode_codes(_to_rgb(decoded, p, bgr=True), "srgb", p)

@@ -21,7 +21,6 @@ import numpy as np
 from pipeline.core import motion, optics, weights
 from pipeline.core.lens import Lens
 from pipeline.errors import InputError
-from pipeline.io.exif import read_exif
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import check_output, write_result
 from pipeline.jobs.stack import accumulate, align_stack, load, stack_sidecar
@@ -247,5 +246,6 @@ def process_dof(
     }
     if w.ndim == 2:
         sidecar["dof"]["row_weights"] = "per-row weights; a frame's 'weight' is its mean over rows"
-    exif = read_exif(stack.files[0])
-    return write_result(output, image, None, sidecar, aligned.timings, start, options, exif)
+    return write_result(
+        output, image, None, sidecar, aligned.timings, start, options, stack.files
+    )

@@ -11,6 +11,8 @@ import numpy as np
 
 from pipeline.core.stack_kernel import wiener_options
 from pipeline.errors import InputError
+from pipeline.io.exif import read_exif
+from pipeline.io.orientation import stack_orientation, upright, upright_exif
 from pipeline.io.write import (
     check_writable,
     commit,
@@ -112,8 +114,13 @@ def restore_image(
     return result
 
 
-def write_result(output, result, kernel, sidecar, timings, start, options, exif) -> StackResult:
+def write_result(output, result, kernel, sidecar, timings, start, options, inputs) -> StackResult:
     """Write the image, the optional kernel and ``OUTPUT.json`` as one result.
+
+    The image and the kernel are turned upright as the first of the ``inputs`` (the frame
+    files) was shot (:func:`~pipeline.io.orientation.stack_orientation`; the sidecar's
+    ``orientation``), and that frame's EXIF is carried into JPEG and PNG outputs, saying
+    upright. The returned result holds the image as written.
 
     Everything is encoded and written to temporaries first; nothing is renamed
     unless all of them were written. Then the old sidecar is removed, the kernel
@@ -125,6 +132,11 @@ def write_result(output, result, kernel, sidecar, timings, start, options, exif)
     output = Path(output)
     sidecar_path = output.with_name(output.name + ".json")
     staged: list[tuple[Path, Path]] = []
+    code = stack_orientation(inputs)
+    result = upright(result, code)
+    kernel = None if kernel is None else upright(kernel, code)
+    sidecar["orientation"] = code
+    exif = upright_exif(read_exif(inputs[0]))
     try:
         payload = encode_image(output, result, encoding=options.encoding, exif=exif)
         staged.append((stage_bytes(output, payload), output))

@@ -38,7 +38,6 @@ from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import frame_kernels, positions_from_scales, stack_kernel
 from pipeline.core.weights import constant_speed_weights
 from pipeline.errors import InputError
-from pipeline.io.exif import read_exif
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
@@ -735,8 +734,7 @@ def process_stack(
             aligned, span, result, clipped, average=average, support=frames, progress=progress
         )
         timings["multiframe"] = time.perf_counter() - t0
-    exif = read_exif(stack.files[0])
-    return write_result(output, result, kernel, sidecar, timings, start, options, exif)
+    return write_result(output, result, kernel, sidecar, timings, start, options, stack.files)
 
 
 def _support(options: StackOptions) -> str | None:

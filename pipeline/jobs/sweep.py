@@ -23,7 +23,6 @@ from pipeline.core.colour import linear_to_srgb, srgb_to_linear
 from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile, constant_speed
 from pipeline.errors import InputError
-from pipeline.io.exif import read_exif
 from pipeline.io.probe import frame_info
 from pipeline.io.read import read_frame
 from pipeline.io.stackfile import Stack, sweep_profile
@@ -148,7 +147,7 @@ def process_sweep_image(
         "kernel": summary,
         "white": options.white,
     }
-    return write_result(output, result, kernel, sidecar, timings, start, options, read_exif(path))
+    return write_result(output, result, kernel, sidecar, timings, start, options, [path])
 
 
 def process_sweep_sequence(

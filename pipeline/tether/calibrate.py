@@ -88,7 +88,9 @@ def read_stack_frames(stack_dir: Path) -> tuple[list[int], list[np.ndarray]]:
     steps, images = [], []
     for frame in sorted(frames, key=lambda f: f["focus_step"]):
         path = stack_dir / frame["file"]
-        image = cv2.imread(str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE)
+        image = cv2.imread(
+            str(path), cv2.IMREAD_ANYDEPTH | cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION
+        )
         if image is None:
             raise InputError(f"{path}: cannot read the frame (missing or not an image)")
         steps.append(int(frame["focus_step"]))

@@ -44,6 +44,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipeline.io.orientation import upright
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from real_stacks import SHARED, STACKS  # the same four stacks as the sharpness benchmark
 from region_measures import (
@@ -297,11 +299,15 @@ def evaluate(
     side = json.loads(Path(str(result) + ".json").read_text())
     flex = read_srgb(result)
     shape = flex.shape[:2]
+    # the frames as stored (IMREAD_UNCHANGED) are warped in their own geometry, then turned
+    # as the result was (the sidecar's EXIF orientation)
+    code = side.get("orientation", 1)
+    stored = shape if code <= 4 else shape[::-1]
     frames, valid = [], np.ones(shape, bool)
     for meta, path in zip(side["frames"], side["inputs"]):
-        f, cover = warp(read_srgb(Path(path)), np.array(meta["homography"]), shape)
-        frames.append(f)
-        valid &= cover
+        f, cover = warp(read_srgb(Path(path)), np.array(meta["homography"]), stored)
+        frames.append(upright(f, code))
+        valid &= upright(cover, code)
     methods = {"flexdof": flex}
     registration = {}
     # peers are registered to a focus-selected composite of the aligned frames, not to the
