@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 
 import cv2
 import numpy as np
 import pytest
-import rawpy
 import tifffile
 from hypothesis import example, given, settings
 from hypothesis import strategies as st
@@ -22,10 +22,6 @@ from pipeline.io.write import write_image
 from pipeline.jobs.options import StackOptions
 from pipeline.jobs.result import write_result
 from pipeline.jobs.stack import process_stack
-
-# LibRaw's ``sizes.flip`` (0, 3, 5, 6: none, half turn, quarter counter-clockwise,
-# quarter clockwise) as the EXIF code a viewer applies
-LIBRAW_FLIP_TO_EXIF = {0: 1, 3: 3, 5: 8, 6: 6}
 
 
 def _asymmetric(shape) -> np.ndarray:
@@ -57,8 +53,22 @@ def test_real_frames_read_as_pillow_and_libraw_read_them(shared_data):
         with Image.open(f) as image:
             assert exif_orientation(f) == image.getexif().get(0x0112, 1), f
     dng = shared_data / "raw-dng-canon550d" / "colorchart.dng"
-    with rawpy.imread(str(dng)) as raw:
-        assert exif_orientation(dng) == LIBRAW_FLIP_TO_EXIF[raw.sizes.flip]
+    with tifffile.TiffFile(dng) as tif:  # an independent reader of IFD0
+        assert exif_orientation(dng) == tif.pages.first.tags["Orientation"].value == 1
+
+
+@pytest.mark.parametrize("code", [3, 6, 8])
+def test_a_turned_raw_frame_is_read_turned_and_decoded_as_stored(tmp_path, shared_data, code):
+    """The real DNG with its IFD0 Orientation rewritten (tifffile, in place): flexdof reads
+    the tag, and decodes the frame and its preview in the sensor's geometry, as before."""
+    source = shared_data / "raw-dng-canon550d" / "colorchart.dng"
+    turned = tmp_path / "turned.dng"
+    shutil.copy(source, turned)
+    with tifffile.TiffFile(turned, mode="r+b") as tif:
+        tif.pages.first.tags["Orientation"].overwrite(code)
+    assert exif_orientation(turned) == code
+    np.testing.assert_array_equal(read_frame(turned), read_frame(source))
+    np.testing.assert_array_equal(read_preview(turned, 400), read_preview(source, 400))
 
 
 @settings(max_examples=30, deadline=None)

@@ -22,7 +22,7 @@ import numpy as np
 import tifffile
 
 from pipeline.io.exif import _ifd_entries, read_exif
-from pipeline.io.probe import _EXIF_HEADER, _existing, _kind
+from pipeline.io.probe import _EXIF_HEADER, _existing, _kind, _raw_error
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +33,8 @@ UPRIGHT = 1
 # does to the stored pixels to show them upright (EXIF 2.32, Sec. 4.6.4 A, tag 0x0112)
 _TURNS = {1: (0, False), 2: (0, True), 3: (2, False), 4: (2, True),
           5: (3, True), 6: (3, False), 7: (1, True), 8: (1, False)}  # fmt: skip
+# LibRaw's ``sizes.flip`` (none, half turn, a quarter counter-clockwise, clockwise) as EXIF
+_LIBRAW_FLIP = {0: 1, 3: 3, 5: 8, 6: 6}
 
 
 def _orientation_field(tiff: bytes) -> tuple[str, int] | None:
@@ -67,22 +69,31 @@ def _block_orientation(block: bytes) -> int:
 def exif_orientation(path: str | Path) -> int:
     """The EXIF orientation of a frame, 1-8 (1: stored upright).
 
-    JPEG and PNG from their EXIF block; TIFF and the TIFF-structured RAW formats (DNG, CR2,
-    NEF, ARW, ...) from IFD0's Orientation tag. Other RAW containers (CR3, RAF, ...), files
-    without the tag and values outside 1-8 give 1: the pixels as stored.
+    JPEG and PNG from their EXIF block, TIFF from IFD0's Orientation tag, RAW files (every
+    format LibRaw reads) from LibRaw's ``flip``, which it takes from the maker's metadata
+    (for DNG, IFD0's Orientation; a half or quarter turn only). Files without the tag and
+    values outside 1-8 give 1: the pixels as stored.
     """
     p = _existing(path)
     kind = _kind(p)
     if kind in ("jpeg", "png"):
         block = read_exif(p)
         code = UPRIGHT if block is None else _block_orientation(block)
+    elif kind == "raw":
+        import rawpy  # only RAW frames need it
+
+        try:
+            with rawpy.imread(str(p)) as raw:
+                code = _LIBRAW_FLIP.get(raw.sizes.flip, UPRIGHT)
+        except rawpy.LibRawError as err:
+            raise _raw_error(p, err) from err
     else:
         try:
             with tifffile.TiffFile(p) as tif:
                 tag = tif.pages.first.tags.get("Orientation")
                 code = UPRIGHT if tag is None else int(tag.value)
         except (tifffile.TiffFileError, struct.error, ValueError, TypeError):
-            code = UPRIGHT  # not TIFF-structured (CR3, RAF, ...): no IFD0 to read
+            code = UPRIGHT  # unreadable here: read_frame names the file's problem
     return code if code in _TURNS else UPRIGHT
 
 
