@@ -267,6 +267,7 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         "the result's fine band is taken from their average, and the result is clipped to the "
         "frames' 3x3 range: no amplified noise in flat areas, no rims or dark moats)",
     )
+    add_match_exposure(parser)
     parser.add_argument(
         "--max-pixels",
         type=int,
@@ -274,6 +275,19 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         help="refuse frames larger than this, before decoding them (default: 200000000)",
     )
     add_compute(parser)
+
+
+def add_match_exposure(parser: argparse.ArgumentParser) -> None:
+    """``--match-exposure``: each frame divided by its own exposure."""
+    parser.add_argument(
+        "--match-exposure",
+        dest="match_exposure",
+        action="store_const",
+        const=True,
+        help="for frames shot at different exposures (a flash's output, flicker, a macro "
+        "lens's effective aperture): divide each by its own, measured on the aligned frames "
+        "(by default they are measured and reported only)",
+    )
 
 
 def stack_options(args: argparse.Namespace):
@@ -298,4 +312,5 @@ def stack_options(args: argparse.Namespace):
         frame_guard=given("frame_guard"),
         frame_range=given("frame_range"),
         white=getattr(args, "white", None),
+        match_exposure=given("match_exposure"),
     )

@@ -43,6 +43,7 @@ def register(subparsers) -> None:
         "--rows", type=Path, metavar="CSV", help="CSV of (row, depth_mm) knots: non-planar DOF"
     )
     _flags.add_alignment(parser)
+    _flags.add_match_exposure(parser)
     _flags.add_compute(parser)
     _flags.add_json(parser)
     parser.set_defaults(func=run)

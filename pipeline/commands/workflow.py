@@ -80,6 +80,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         "tile_px": args.tile_px,
         "frame_guard": args.frame_guard,
         "frame_range": args.frame_range,
+        "match_exposure": args.match_exposure,
         "concurrency": args.concurrency,
         "threads_per_stack": args.threads,
         "scheduler": args.scheduler,

@@ -23,7 +23,13 @@ from pipeline.core.lens import Lens
 from pipeline.errors import InputError
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
 from pipeline.jobs.result import check_output, write_result
-from pipeline.jobs.stack import accumulate, align_stack, load, stack_sidecar
+from pipeline.jobs.stack import (
+    accumulate,
+    align_stack,
+    load,
+    normalise_exposure,
+    stack_sidecar,
+)
 
 log = logging.getLogger(__name__)
 
@@ -233,6 +239,7 @@ def process_dof(
             "(focus_distance_mm or image_distance_mm in stack.toml)"
         )
     w = frame_weights(target, lens, aligned.positions, aligned.shape[0])
+    normalise_exposure(aligned, w, options)  # a drifting exposure would band the rows' DOFs
     image = accumulate(aligned, w, options, progress=progress)[0]
     sidecar = stack_sidecar(aligned, w, f"dof-{target.kind}", options)
     sidecar["dof"] = {

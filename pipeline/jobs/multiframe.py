@@ -58,6 +58,8 @@ def restore_multiframe(
     for i, (path, a) in enumerate(zip(files, aligned.alignments)):
         frame = read_frame(path, white=aligned.stack.white)
         frames[i] = align.warp(frame, a.homography, aligned.shape, interpolation="lanczos")
+        if aligned.gains is not None:  # its exposure (the clipped pixels: the main job's)
+            frames[i] /= np.float32(aligned.gains[i])
         progress("multiframe", i + 1, 2 * len(files))
 
     def kernels_at(x: float, scale: float) -> list[np.ndarray]:

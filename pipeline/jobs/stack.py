@@ -26,6 +26,7 @@ import dask
 import numpy as np
 
 from pipeline.core import align, defocus, multiframe
+from pipeline.core.exposure import exposure_gains
 from pipeline.core.focus_order import focus_order
 from pipeline.core.frame_support import (
     FrameSupport,
@@ -81,6 +82,8 @@ CHOICE_MARGIN_FITTED = 0.0
 # overshoots is clipped to the frames' range (pipeline.core.frame_support).
 FITTED_SPAN_SCALE = 2.0
 MIN_FRAME_SIDE_PX = 8  # smaller frames hold no usable detail (and no room for a kernel)
+# frames' exposures (as shot) further apart than this are warned of (beetle's flash: 0.49)
+EXPOSURE_WARNING = 0.05
 # A frame whose contrast (1st to 99th percentile of its reduced grey copy) is below this share
 # of the stack's median is blank (a misfire, the lens cap, a black or white frame) and left
 # out: kept, one black frame in four of beetle's made the blur-span fit read 400 px and the
@@ -340,11 +343,45 @@ def _blur_fit_previews(previews, alignments, full_shape) -> tuple[list[np.ndarra
     return small, _fit_factor(full_shape)
 
 
+def normalise_exposure(aligned: AlignedStack, weights, options: StackOptions):
+    """The aligned previews at the defocus fit's resolution, ``(copies, factor)`` (``None``
+    where no previews were read), and each frame's exposure relative to the stack's
+    measured on them (:func:`pipeline.core.exposure.exposure_gains`; ``weights``: the
+    frames' in the sum), as ``aligned.exposures``. With ``--match-exposure`` they are also
+    ``aligned.gains``: the copies are returned divided by them, and every read of a frame
+    past this point divides it by its own (its clipped pixels found first, as shot); as
+    shot, exposures that differ by more than ``EXPOSURE_WARNING`` are named in a warning."""
+    if aligned.previews is None:
+        return None
+    copies, factor = fit = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
+    gains = exposure_gains(copies, weights)
+    if np.all(gains == 1):
+        return fit
+    aligned.exposures = gains
+    names = [f.name for f in aligned.stack.files]
+    low, high = int(np.argmin(gains)), int(np.argmax(gains))
+    spread = (f"{gains[low]:.3f} ({names[low]}) to {gains[high]:.3f} ({names[high]}) of the "
+              "stack's")  # fmt: skip
+    if options.match_exposure:
+        aligned.gains = gains
+        log.info("exposure differs between frames: %s; each frame is divided by its own", spread)
+        return [c / np.float32(g) for c, g in zip(copies, gains)], factor
+    if gains[high] - gains[low] > EXPOSURE_WARNING:
+        log.warning(
+            "%s: the frames' exposures differ, %s (a flash, flicker or a macro lens's "
+            "effective aperture); --match-exposure divides each frame by its own",
+            aligned.stack.base_dir, spread,
+        )  # fmt: skip
+    return fit
+
+
 def _end_frame(aligned: AlignedStack, index: int) -> np.ndarray:
     """Frame ``index``, grey and aligned, at the end correction's resolution
     (:func:`pipeline.jobs.ends.correction_factor`; a cheap reduced decode for JPEGs)."""
     size = reduced_size(aligned.shape, correction_factor(aligned.shape))
     preview = read_preview(aligned.stack.files[index], max(size), white=aligned.stack.white)
+    if aligned.gains is not None:
+        preview /= np.float32(aligned.gains[index])
     return _aligned_at(preview, aligned.alignments[index], aligned.shape, size)
 
 
@@ -406,6 +443,11 @@ class AlignedStack:
     timings: dict[str, float]
     start: float
     left_out: tuple[str, ...] = ()  # blank frames' file names (:func:`leave_out_blank`)
+    # each frame's exposure relative to the stack's, as measured (:func:`normalise_exposure`;
+    # None: all within 1% of 1 or not measured), and as divided out of every read of the
+    # frame (``--match-exposure``; None: as shot)
+    exposures: np.ndarray | None = None
+    gains: np.ndarray | None = None
 
 
 def load(paths, options: StackOptions) -> tuple[Stack, Lens | None, float]:
@@ -505,6 +547,7 @@ def accumulate(
         aligned.shape,
         support=support,
         white=aligned.stack.white,
+        gains=aligned.gains,
         keep=keep,
         detail=detail,
     )
@@ -528,13 +571,14 @@ def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, optio
             "scale": float(a.scale),
             "homography": a.homography.tolist(),
             "alignment": a.method if a.ok else f"fallback: {a.message}",
+            "exposure": 1.0 if aligned.exposures is None else round(float(aligned.exposures[i]), 4),
         }
-        for frame, p, w, a in zip(
+        for i, (frame, p, w, a) in enumerate(zip(
             aligned.stack.frames,
             aligned.positions,
             weights if weights.ndim == 1 else weights.T,
             aligned.alignments,
-        )
+        ))
     ]
     if aligned.absolute:
         for meta, p in zip(frames_meta, aligned.positions):
@@ -550,6 +594,7 @@ def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, optio
         "frames": frames_meta,
         "partial_stack": aligned.stack.partial,
         "left_out": list(aligned.left_out),
+        "exposure_matched": aligned.gains is not None,
         "white": aligned.stack.white,
     }
 
@@ -642,10 +687,9 @@ def process_stack(
     # The IPSF needs only the previews and the positions, the average only the frames:
     # the blur-span fit and the kernel run beside the accumulation (issue 15; a failed
     # fit is reported once the accumulation ends).
-    small = None  # the aligned previews at the fit's resolution (the full ones are dropped)
+    # the aligned previews at the fit's resolution (the full ones are dropped)
+    small = normalise_exposure(aligned, weights, options)
     want_ends = options.frame_range and not options.frame_guard
-    if aligned.previews is not None and (needs_fit or want_ends):
-        small = _blur_fit_previews(aligned.previews, aligned.alignments, aligned.shape)
     aligned.previews = None  # not needed past the alignment: memory flat in the frame count
     ends_read = None  # what the ends' correction reads (pipeline.jobs.ends)
     inner = None  # where each inner frame is the sharpest, for its own detail

@@ -37,9 +37,12 @@ def _warped_leaf(
     white=None,
     key=None,
     detail=None,
+    gain=1.0,
 ):
     """Read one frame (with white level ``white``, :func:`pipeline.io.read.read_frame`),
-    warp it onto the reference, weight it; its clipped pixels; decode time; with
+    warp it onto the reference, divide it by its exposure ``gain``
+    (:func:`pipeline.core.exposure.exposure_gains`; its clipped pixels are found as shot,
+    before), weight it; its clipped pixels; decode time; with
     ``support`` (``"range"`` or ``"full"``), its
     :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``); with a ``key``,
     ``{key: its grey image}`` (:func:`~pipeline.core.colour.mean_grey`, as read: not
@@ -53,17 +56,20 @@ def _warped_leaf(
     t0 = time.perf_counter()
     frame = read_frame(path, white=white)
     read_s = time.perf_counter() - t0
-    kept = {} if key is None else {key: np.array(mean_grey(frame), np.float32)}
+    scale = np.float32(1.0 / gain)
+    kept = {} if key is None else {key: np.multiply(mean_grey(frame), scale, dtype=np.float32)}
     sharp = None
     if detail is not None:
         grey = mean_grey(frame)
         if homography is not None:
             grey = align.warp(grey, homography, shape, interpolation="cubic")
         where = cv2.resize(np.asarray(detail(), np.float32), (shape[1], shape[0]))
-        sharp = (np.multiply(grey, where, dtype=np.float32), where)
+        sharp = (np.multiply(grey, where * scale, dtype=np.float32), where)
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
+    if gain != 1.0:
+        frame *= scale
     stats = FrameSupport.of_frame(frame, ~clipped, full=support == "full") if support else None
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
@@ -86,11 +92,20 @@ def _merge(a, b):
 
 
 def _add_frame(
-    partial, path: str, homography, weight, shape, support=None, white=None, key=None, detail=None
+    partial,
+    path: str,
+    homography,
+    weight,
+    shape,
+    support=None,
+    white=None,
+    key=None,
+    detail=None,
+    gain=1.0,
 ):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
-    leaf = _warped_leaf(path, homography, weight, shape, support, white, key, detail)
+    leaf = _warped_leaf(path, homography, weight, shape, support, white, key, detail, gain)
     return leaf if partial is None else _merge(partial, leaf)
 
 
@@ -103,10 +118,11 @@ def weighted_sum_graph(
     lanes: int = LANES,
     support: str | None = None,
     white: float | None = None,
+    gains=None,
     keep=(),
     detail=None,
 ):
-    """A dask graph for ``sum_i w_i warp(frame_i)``: ``lanes`` chains of in-place sums.
+    """A dask graph for ``sum_i w_i warp(frame_i) / g_i``: ``lanes`` chains of in-place sums.
 
     ``weights[i]`` is frame i's weight, a number or one per row. Frames whose
     weights are all zero are not read. Frame ``i`` goes to lane ``i mod lanes``;
@@ -127,7 +143,9 @@ def weighted_sum_graph(
     frame warped bicubic and ``m_i`` its map at ``shape`` (the frames' own detail,
     :mod:`pipeline.jobs.frame_detail`, without keeping the frames: memory flat in their
     number), else ``None``. ``white``: the frames' white level
-    (:func:`pipeline.io.read.read_frame`).
+    (:func:`pipeline.io.read.read_frame`). ``gains``: each frame's exposure ``g_i``
+    (:func:`pipeline.core.exposure.exposure_gains`), every image of frame ``i`` above divided
+    by it; ``None``: all 1.
     """
     if int(lanes) < 1:
         raise ValueError(f"lanes must be >= 1, got {lanes!r}")
@@ -140,6 +158,7 @@ def weighted_sum_graph(
             float(w) if np.ndim(w) == 0 else np.asarray(w),
             i if i in keep else None,
             functools.partial(detail.weight, i) if i in lends else None,
+            1.0 if gains is None else float(gains[i]),
         )
         for i, (path, h, w) in enumerate(zip(files, homographies, weights))
         if np.max(w) > 0
@@ -147,11 +166,11 @@ def weighted_sum_graph(
     level = []
     for lane in range(min(int(lanes), len(used))):
         partial = None
-        for path, h, w, key, where in used[lane :: int(lanes)]:
+        for path, h, w, key, where, gain in used[lane :: int(lanes)]:
             # pure=False: equal steps (a frame listed twice, first in two lanes) stay separate
             # tasks; a shared one would be added into, in place, by two later steps
             partial = dask.delayed(_add_frame, pure=False)(
-                partial, path, h, w, tuple(shape), support, white, key, where
+                partial, path, h, w, tuple(shape), support, white, key, where, gain
             )
         level.append(partial)
     while len(level) > 1:

@@ -135,6 +135,7 @@ def plan_stacks(
             align_max_side_px=merged.get("align_max_side_px", 768),
             frame_guard=merged.get("frame_guard", False),
             frame_range=merged.get("frame_range", True),
+            match_exposure=merged.get("match_exposure", False),
         )
         if spec.directories is not None:
             pattern = str(base / spec.directories)

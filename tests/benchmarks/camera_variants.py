@@ -16,6 +16,7 @@ run "as shot" does not). Prints, and writes to ``OUT/camera_variants.md``, the r
 good as each peer.
 
     python tests/benchmarks/camera_variants.py --focus-stack PATH [--stack pcb7]
+        [--flexdof-args --match-exposure --label match]
 """
 
 from __future__ import annotations
@@ -72,11 +73,16 @@ def main() -> int:
     parser.add_argument(
         "--out", type=Path, default=HERE / "results" / "real_regions" / "camera_variants"
     )
+    parser.add_argument("--flexdof-args", default="", help="added to --threads 2")
+    parser.add_argument(
+        "--label", default="", help="names the results: OUT/camera_variants_LABEL.md"
+    )
     args = parser.parse_args()
     frames = [Path(p) for p in sorted(glob.glob(str(SHARED / STACKS[args.stack])))]
     rows = []
     for variant, (orientation, gains) in VARIANTS.items():
-        name = f"{args.stack}-{variant.replace(' ', '-')}"
+        label = f"-{args.label}" if args.label else ""
+        name = f"{args.stack}-{variant.replace(' ', '-')}{label}"
         folder = args.out / "frames" / name
         make_variant(frames, folder, orientation, gains(len(frames)))
         scored = args.out / name
@@ -88,6 +94,7 @@ def main() -> int:
                 f"--stacks={name}",
                 f"--focus-stack={args.focus_stack}",
                 f"--out={scored}",
+                f"--flexdof-args=--threads 2 {args.flexdof_args}".strip(),
             ],
             check=True,
         )
@@ -95,12 +102,14 @@ def main() -> int:
         counts = [good_regions(result["scores"], peer) for peer in PEERS]
         ecc = result["registration_ecc"].get("focus-stack", float("nan"))
         rows.append((variant, counts, ecc))
+    given = f" --flexdof-args='{args.flexdof_args}' --label={args.label}" if args.label else ""
     lines = [
         f"# {args.stack} as other cameras and shooting deliver it",
         "",
-        "`python tests/benchmarks/camera_variants.py --focus-stack PATH`: regions of 9 where",
-        "flexdof is at least as good as the peer on all four measures (the peer made from the",
-        "same files), and focus-stack's registration to the frames (ECC).",
+        f"`python tests/benchmarks/camera_variants.py --focus-stack PATH{given}`:",
+        "regions of 9 where flexdof is at least as good as the peer on all four measures",
+        "(the peer made from the same files), and focus-stack's registration to the frames",
+        "(ECC).",
         "",
         "| variant | vs focus-stack | vs focus-stack as shot | vs enfuse | registration |",
         "|---|---|---|---|---|",
@@ -109,7 +118,8 @@ def main() -> int:
         cells = " | ".join(f"{a}/{n}" for a, n in counts)
         lines.append(f"| {variant} | {cells} | {ecc:.4f} |")
     text = "\n".join(lines) + "\n"
-    (args.out / "camera_variants.md").write_text(text)
+    suffix = f"_{args.label}" if args.label else ""
+    (args.out / f"camera_variants{suffix}.md").write_text(text)
     print(text)
     return 0
 
