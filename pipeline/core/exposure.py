@@ -3,8 +3,8 @@
 Sec. 9 emulates a constant-speed sweep by a weighted sum of the frames, ``sum_k w_k y_k``,
 and deconvolves it with ``sum_k w_k K_k`` (Eqs. 5-6). That holds when every frame saw the
 scene with the same exposure. Real stacks do not: a flash's output varies from shot to
-shot (the beetle stack, lit at 1/200 s: 0.74-1.22 of its mean), and a macro lens's
-effective aperture changes with its focus (pcb7: 0.98-1.03, pcb10: 1.07-0.98). A frame
+shot (the beetle stack, lit at 1/200 s: 0.74-1.26 of the stack's), and a macro lens's
+effective aperture changes with its focus (pcb7: 0.98-1.03, pcb10: 1.08-0.95). A frame
 ``y_k = g_k K_k x`` then enters the sum at ``w_k g_k``: the detail in focus in a bright frame
 is over-restored and that of a dark one stays soft, and the frame-based steps (the frames'
 range, their detail) see each frame's own brightness.
@@ -67,6 +67,8 @@ def exposure_gains(copies: Sequence[np.ndarray], weights) -> np.ndarray:
     """
     stack = np.stack([np.asarray(c, np.float32) for c in copies])
     n, rows, cols = stack.shape
+    if not np.all(np.isfinite(stack)):
+        return np.ones(n)
     w = np.asarray(weights, np.float64)
     w = w.mean(axis=0) if w.ndim == 2 else w
     w = w / w.sum()
@@ -77,8 +79,6 @@ def exposure_gains(copies: Sequence[np.ndarray], weights) -> np.ndarray:
     clipped = (stack.max(axis=0) >= CLIPPED).astype(np.uint8)
     near = cv2.dilate(clipped, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * reach + 1,) * 2))
     usable &= near == 0
-    if not np.all(np.isfinite(stack)):
-        return np.ones(n)
     blurred = np.stack([cv2.GaussianBlur(c, (0, 0), sigma) for c in stack])
     mean = np.tensordot(w, blurred, axes=1).astype(np.float32)
     usable &= (mean > DARK * float(np.mean(mean))).astype(np.uint8)

@@ -46,10 +46,10 @@ def _warped_leaf(
     ``support`` (``"range"`` or ``"full"``), its
     :class:`~pipeline.core.frame_support.FrameSupport` (else ``None``); with a ``key``,
     ``{key: its grey image}`` (:func:`~pipeline.core.colour.mean_grey`, as read: not
-    warped), else ``{}``; with ``detail``, a zero-argument callable giving the frame's map
-    (0..1, any size: where it is the sharpest), ``(m g, m)``: its grey image warped bicubic
-    (fine detail kept, see :func:`pipeline.core.align.warp`) times the map brought to
-    ``shape``, and that map (else ``None``).
+    warped; divided by ``gain``), else ``{}``; with ``detail``, a zero-argument callable
+    giving the frame's map (0..1, any size: where it is the sharpest), ``(m g, m)``: its
+    grey image warped bicubic (fine detail kept, see :func:`pipeline.core.align.warp`) and
+    divided by ``gain``, times the map brought to ``shape``, and that map (else ``None``).
 
     ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
     """
