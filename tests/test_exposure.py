@@ -171,3 +171,23 @@ def test_the_flash_lit_beetle_reads_its_frames_exposures(tmp_path, shared_data, 
         means.append(float(warped[40:-40, 60:-60].mean()))
     means = np.array(means)
     np.testing.assert_allclose(got / got[3], means / means[3], rtol=0.02)
+
+
+def test_the_quality_method_reads_the_frames_divided_too(tmp_path):
+    """``--method multiframe`` reads the frames again: with ``--match-exposure`` it divides
+    them as the sum did, so a drifting stack's result is the undrifted one's."""
+    sharp = srgb_to_linear(data.astronaut()[40:296, 130:386].astype(np.float32) / 255)
+    positions = positions_for(450, 1200, 7)
+    gains = np.array([0.7, 1.0, 0.85, 0.95, 0.8, 1.0, 0.75])
+    for name in ("plain", "drift"):
+        (tmp_path / name).mkdir()
+        make_stack(tmp_path / name, sharp, [500.0, 800.0, 1600.0], positions)
+    for frame, g in zip(sorted((tmp_path / "drift").glob("frame_*.tif")), gains):
+        write_image(frame, read_frame(frame) * np.float32(g), encoding="float32")
+    options = StackOptions(encoding="float32", match_exposure=True, method="multiframe")
+    plain = process_stack(tmp_path / "plain", tmp_path / "p.tif", options)
+    drift = process_stack(tmp_path / "drift", tmp_path / "d.tif", options)
+    assert drift.sidecar["multiframe"]["share"] > 0.3
+    k = float(np.sum(drift.image * plain.image) / np.sum(drift.image**2))
+    # measured: 53.17 dB; 46.63 with the quality method's frames read as shot
+    assert psnr(k * drift.image, plain.image) > 50.0
