@@ -11,7 +11,14 @@ from pathlib import Path
 import tifffile
 
 from pipeline.errors import InputError
-from pipeline.io.probe import _EXIF_HEADER, _existing, _jpeg_structure, _kind, _png_chunks
+from pipeline.io.probe import (
+    _EXIF_HEADER,
+    _existing,
+    _jpeg_structure,
+    _kind,
+    _png_chunk,
+    _png_chunks,
+)
 
 
 def read_exif(path: str | Path) -> bytes | None:
@@ -26,10 +33,8 @@ def read_exif(path: str | Path) -> bytes | None:
     if kind == "jpeg":
         return _jpeg_structure(p.read_bytes(), p).exif
     if kind == "png":
-        data = p.read_bytes()
-        for ctype, start, end in _png_chunks(data, p):
-            if ctype == b"eXIf":
-                return _EXIF_HEADER + data[start:end]
+        body = _png_chunk(p, b"eXIf")
+        return None if body is None else _EXIF_HEADER + body
     return None
 
 
@@ -106,25 +111,34 @@ def subject_distance_mm(path: str | Path) -> float | None:
     return numerator / denominator * 1000.0
 
 
+def _insert_jpeg_segment(jpeg: bytes, marker: int, payload: bytes) -> bytes:
+    """Insert an APPn segment (``marker`` 0xE0-0xEF) after SOI (and a JFIF APP0 if any)."""
+    pos = 2
+    if jpeg[2:4] == b"\xff\xe0":
+        pos += 2 + struct.unpack(">H", jpeg[4:6])[0]
+    segment = bytes([0xFF, marker]) + struct.pack(">H", len(payload) + 2) + payload
+    return jpeg[:pos] + segment + jpeg[pos:]
+
+
+def _insert_png_chunk(png: bytes, ctype: bytes, body: bytes, path: Path) -> bytes:
+    """Insert a chunk of type ``ctype`` before the first IDAT chunk."""
+    for kind, start, _end in _png_chunks(png, path):
+        if kind == b"IDAT":
+            pos = start - 8
+            break
+    chunk = struct.pack(">I", len(body)) + ctype + body
+    chunk += struct.pack(">I", zlib.crc32(ctype + body) & 0xFFFFFFFF)
+    return png[:pos] + chunk + png[pos:]
+
+
 def _insert_jpeg_exif(jpeg: bytes, exif: bytes, path: Path) -> bytes:
     """Insert an APP1 EXIF segment after SOI (and after a JFIF APP0 if there is one)."""
     block = exif if exif.startswith(_EXIF_HEADER) else _EXIF_HEADER + exif
     if len(block) + 2 > 0xFFFF:
         raise InputError(f"{path}: EXIF block of {len(block)} bytes is too large for JPEG APP1")
-    pos = 2
-    if jpeg[2:4] == b"\xff\xe0":
-        pos += 2 + struct.unpack(">H", jpeg[4:6])[0]
-    segment = b"\xff\xe1" + struct.pack(">H", len(block) + 2) + block
-    return jpeg[:pos] + segment + jpeg[pos:]
+    return _insert_jpeg_segment(jpeg, 0xE1, block)
 
 
 def _insert_png_exif(png: bytes, exif: bytes, path: Path) -> bytes:
     """Insert an eXIf chunk before the first IDAT chunk."""
-    body = exif.removeprefix(_EXIF_HEADER)
-    for ctype, start, _end in _png_chunks(png, path):
-        if ctype == b"IDAT":
-            pos = start - 8
-            break
-    chunk = struct.pack(">I", len(body)) + b"eXIf" + body
-    chunk += struct.pack(">I", zlib.crc32(b"eXIf" + body) & 0xFFFFFFFF)
-    return png[:pos] + chunk + png[pos:]
+    return _insert_png_chunk(png, b"eXIf", exif.removeprefix(_EXIF_HEADER), path)

@@ -16,6 +16,7 @@ from pipeline.errors import InputError
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 # JPEG start-of-frame markers carry the image size (C4 DHT, C8 JPG, CC DAC are not SOFs).
 _EXIF_HEADER = b"Exif\x00\x00"  # APP1 segments that carry EXIF start with it
+_ICC_HEADER = b"ICC_PROFILE\x00"  # APP2 segments that carry an ICC profile (ICC.1 Annex B)
 _JPEG_SOF = frozenset(range(0xC0, 0xD0)) - {0xC4, 0xC8, 0xCC}
 
 
@@ -44,6 +45,7 @@ class _JpegLayout:
     cols: int
     components: int
     exif: bytes | None
+    icc: bytes | None = None  # the ICC profile, its APP2 chunks joined in their order
 
 
 def _jpeg_structure(data: bytes, path: Path) -> _JpegLayout:
@@ -54,7 +56,7 @@ def _jpeg_structure(data: bytes, path: Path) -> _JpegLayout:
     """
     if not data.startswith(b"\xff\xd8"):
         raise InputError(f"{path}: not a JPEG file (no SOI marker 0xFFD8 at the start)")
-    pos, size, exif = 2, None, None
+    pos, size, exif, icc = 2, None, None, {}
     while True:
         while data[pos + 1 : pos + 2] == b"\xff":
             pos += 1  # fill bytes before a marker
@@ -73,6 +75,8 @@ def _jpeg_structure(data: bytes, path: Path) -> _JpegLayout:
             size = (rows, cols, components)
         elif marker == 0xE1 and exif is None and segment.startswith(_EXIF_HEADER):
             exif = bytes(segment)
+        elif marker == 0xE2 and segment.startswith(_ICC_HEADER) and len(segment) > 14:
+            icc[segment[12]] = bytes(segment[14:])  # sequence number, count, then the data
         elif marker == 0xDA:  # start of scan: the entropy-coded data follows
             if size is None:
                 raise InputError(f"{path}: corrupt JPEG (no SOF marker before the scan)")
@@ -81,7 +85,8 @@ def _jpeg_structure(data: bytes, path: Path) -> _JpegLayout:
                     f"{path}: truncated JPEG (no EOI marker 0xFFD9 after the image data: "
                     "the file was cut short); re-copy or re-export the file"
                 )
-            return _JpegLayout(size[0], size[1], size[2], exif)
+            profile = b"".join(icc[k] for k in sorted(icc)) if icc else None
+            return _JpegLayout(size[0], size[1], size[2], exif, profile)
         pos += 2 + length
 
 
@@ -107,6 +112,15 @@ def _png_chunks(data: bytes, path: Path) -> list[tuple[bytes, int, int]]:
         if ctype == b"IEND":
             return chunks
         pos = end + 4
+
+
+def _png_chunk(path: Path, wanted: bytes) -> bytes | None:
+    """The data of a PNG file's first chunk of type ``wanted``, or None."""
+    data = path.read_bytes()
+    for ctype, start, end in _png_chunks(data, path):
+        if ctype == wanted:
+            return data[start:end]
+    return None
 
 
 def _png_structure(data: bytes, path: Path) -> FrameInfo:

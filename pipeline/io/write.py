@@ -28,6 +28,7 @@ import tifffile
 from pipeline.core.colour import linear_to_srgb
 from pipeline.errors import InputError
 from pipeline.io.exif import _insert_jpeg_exif, _insert_png_exif
+from pipeline.io.icc import insert_jpeg_icc, insert_png_icc
 from pipeline.io.probe import JPEG_EXTENSIONS, TIFF_EXTENSIONS
 
 log = logging.getLogger(__name__)
@@ -329,6 +330,7 @@ def write_image(
     *,
     encoding: str | None = None,
     exif: bytes | None = None,
+    icc: bytes | None = None,
 ) -> None:
     """Encode a float linear-light image and write it atomically.
 
@@ -347,6 +349,9 @@ def write_image(
     exif : bytes, optional
         An EXIF block as :func:`read_exif` returns it; carried into JPEG (APP1)
         and PNG (eXIf). TIFF output does not carry it (logged).
+    icc : bytes, optional
+        An ICC profile (:func:`pipeline.io.icc.read_icc`); carried into sRGB-coded outputs
+        (JPEG APP2, PNG iCCP, TIFF InterColorProfile); linear TIFFs carry none (logged).
 
     Notes
     -----
@@ -355,7 +360,8 @@ def write_image(
     temporary file in the same directory and renamed over ``path``, so on any
     error no partial file is left and an existing file stays intact.
     """
-    _atomic_write_bytes(Path(path), encode_image(path, image, encoding=encoding, exif=exif))
+    payload = encode_image(path, image, encoding=encoding, exif=exif, icc=icc)
+    _atomic_write_bytes(Path(path), payload)
 
 
 def encode_image(
@@ -364,6 +370,7 @@ def encode_image(
     *,
     encoding: str | None = None,
     exif: bytes | None = None,
+    icc: bytes | None = None,
 ) -> bytes:
     """The bytes :func:`write_image` writes (the format from ``path``'s extension)."""
     p = Path(path)
@@ -389,6 +396,9 @@ def encode_image(
             data = _quantise(arr, bits, transfer, p)
         if exif is not None:
             log.info("%s: EXIF is not carried into TIFF output", p)
+        if icc is not None and transfer == "linear":
+            log.info("%s: the frames' ICC profile is not carried into linear output", p)
+            icc = None
         buffer = io.BytesIO()
         tifffile.imwrite(
             buffer,
@@ -397,6 +407,7 @@ def encode_image(
             description=_TIFF_MARK.format(transfer),
             software="flexdof",
             metadata=None,
+            iccprofile=icc,
         )
         payload = buffer.getvalue()
     else:
@@ -411,6 +422,10 @@ def encode_image(
         if not ok:
             raise InputError(f"{p}: OpenCV cannot encode a {arr.shape} image as {ext}")
         payload = encoded.tobytes()
+        if icc is not None:  # before EXIF goes in after SOI: APP1, then APP2
+            payload = insert_jpeg_icc(payload, icc) if ext in JPEG_EXTENSIONS else (
+                insert_png_icc(payload, icc, p)
+            )
         if exif is not None:
             insert = _insert_jpeg_exif if ext in JPEG_EXTENSIONS else _insert_png_exif
             payload = insert(payload, exif, p)

@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.core.stack_kernel import wiener_options
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
+from pipeline.io.icc import read_icc
 from pipeline.io.orientation import stack_orientation, upright, upright_exif
 from pipeline.io.write import (
     check_writable,
@@ -120,7 +121,8 @@ def write_result(output, result, kernel, sidecar, timings, start, options, input
     The image and the kernel are turned upright as the first of the ``inputs`` (the frame
     files) was shot (:func:`~pipeline.io.orientation.stack_orientation`; the sidecar's
     ``orientation``), and that frame's EXIF is carried into JPEG and PNG outputs, saying
-    upright. The returned result holds the image as written.
+    upright, and its ICC profile into sRGB-coded ones (:mod:`pipeline.io.icc`). The
+    returned result holds the image as written.
 
     Everything is encoded and written to temporaries first; nothing is renamed
     unless all of them were written. Then the old sidecar is removed, the kernel
@@ -136,9 +138,9 @@ def write_result(output, result, kernel, sidecar, timings, start, options, input
     result = upright(result, code)
     kernel = None if kernel is None else upright(kernel, code)
     sidecar["orientation"] = code
-    exif = upright_exif(read_exif(inputs[0]))
+    exif, icc = upright_exif(read_exif(inputs[0])), read_icc(inputs[0])
     try:
-        payload = encode_image(output, result, encoding=options.encoding, exif=exif)
+        payload = encode_image(output, result, encoding=options.encoding, exif=exif, icc=icc)
         staged.append((stage_bytes(output, payload), output))
         if options.save_kernel is not None and kernel is not None:
             kernel_path = Path(options.save_kernel)
