@@ -502,3 +502,26 @@ def test_raw_previews_come_from_a_half_size_decode(shared_data, side, monkeypatc
     monkeypatch.undo()
     with pytest.raises(InputError, match=r"colorchart\.dng: a white level"):
         read.read_preview(path, side, white=2.0)
+
+
+def test_exif_too_large_for_a_jpeg_is_left_out_of_it_not_the_result(
+    tmp_path, shared_data, caplog
+):
+    """PNG frames whose eXIf holds 85 kB (a 70 kB description): a JPEG's APP1 holds 64 kB.
+    The job's JPEG is written without it and says so; its PNG carries it."""
+    from pipeline.jobs.options import StackOptions
+    from pipeline.jobs.stack import process_stack
+
+    for src in sorted((shared_data / "chimpstackr-beetle").glob("*.jpg"))[:3]:
+        with Image.open(src) as image:
+            exif = image.getexif()
+            exif[0x010E] = "x" * 70_000
+            image.save(tmp_path / f"{src.stem}.png", exif=exif.tobytes())
+    frames = sorted(tmp_path.glob("*.png"))
+    with caplog.at_level("WARNING"):
+        process_stack(frames, tmp_path / "out.jpg", StackOptions())
+    assert "does not fit a JPEG's 64 kB APP1" in caplog.text
+    assert read_exif(tmp_path / "out.jpg") is None
+    process_stack(frames, tmp_path / "out.png", StackOptions())
+    with Image.open(tmp_path / "out.png") as out:
+        assert out.getexif()[0x010E] == "x" * 70_000

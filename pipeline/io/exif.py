@@ -131,10 +131,16 @@ def _insert_png_chunk(png: bytes, ctype: bytes, body: bytes, path: Path) -> byte
     return png[:pos] + chunk + png[pos:]
 
 
+def fits_jpeg(exif: bytes) -> bool:
+    """Whether an EXIF block fits a JPEG's one APP1 segment (64 kB; a PNG's eXIf chunk, or a
+    TIFF's IFD, may hold more)."""
+    return len(exif.removeprefix(_EXIF_HEADER)) + len(_EXIF_HEADER) + 2 <= 0xFFFF
+
+
 def _insert_jpeg_exif(jpeg: bytes, exif: bytes, path: Path) -> bytes:
     """Insert an APP1 EXIF segment after SOI (and after a JFIF APP0 if there is one)."""
     block = exif if exif.startswith(_EXIF_HEADER) else _EXIF_HEADER + exif
-    if len(block) + 2 > 0xFFFF:
+    if not fits_jpeg(block):
         raise InputError(f"{path}: EXIF block of {len(block)} bytes is too large for JPEG APP1")
     return _insert_jpeg_segment(jpeg, 0xE1, block)
 

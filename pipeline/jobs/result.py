@@ -4,6 +4,7 @@ write the image, the optional kernel and the ``OUT.json`` sidecar.
 
 from __future__ import annotations
 
+import logging
 import time
 from pathlib import Path
 
@@ -11,7 +12,7 @@ import numpy as np
 
 from pipeline.core.stack_kernel import wiener_options
 from pipeline.errors import InputError
-from pipeline.io.exif import read_exif
+from pipeline.io.exif import fits_jpeg, read_exif
 from pipeline.io.icc import read_icc
 from pipeline.io.orientation import stack_orientation, upright, upright_exif
 from pipeline.io.write import (
@@ -25,6 +26,8 @@ from pipeline.io.write import (
 from pipeline.jobs.options import StackOptions, StackResult
 from pipeline.parallel.accumulate import clipped_pixels
 from pipeline.parallel.tiling import deconvolve_tiled
+
+log = logging.getLogger(__name__)
 
 
 def check_output(output: Path, save_kernel: Path | None = None) -> None:
@@ -139,6 +142,12 @@ def write_result(output, result, kernel, sidecar, timings, start, options, input
     kernel = None if kernel is None else upright(kernel, code)
     sidecar["orientation"] = code
     exif, icc = upright_exif(read_exif(inputs[0])), read_icc(inputs[0])
+    if exif is not None and output.suffix.lower() in (".jpg", ".jpeg") and not fits_jpeg(exif):
+        log.warning(
+            "%s: the first frame's EXIF (%d bytes) does not fit a JPEG's 64 kB APP1 segment; "
+            "written without it (a PNG output carries it)", output, len(exif),
+        )  # fmt: skip
+        exif = None
     try:
         payload = encode_image(output, result, encoding=options.encoding, exif=exif, icc=icc)
         staged.append((stage_bytes(output, payload), output))
