@@ -19,6 +19,7 @@ from pathlib import Path
 
 import tifffile
 
+from pipeline.errors import InputError
 from pipeline.io.exif import _insert_jpeg_segment, _insert_png_chunk
 from pipeline.io.probe import _ICC_HEADER, _existing, _jpeg_structure, _kind, _png_chunk
 
@@ -52,7 +53,10 @@ def insert_jpeg_icc(jpeg: bytes, profile: bytes) -> bytes:
     """``jpeg`` with ``profile`` in APP2 segments after SOI (and a JFIF APP0), in order."""
     parts = [profile[i : i + _JPEG_CHUNK] for i in range(0, len(profile), _JPEG_CHUNK)]
     if not 0 < len(parts) <= 255:
-        raise ValueError(f"an ICC profile of {len(profile)} bytes does not fit 255 APP2 chunks")
+        raise InputError(
+            f"the first frame's ICC profile of {len(profile)} bytes does not fit a JPEG's 255 "
+            "APP2 chunks: write a .tif or .png"
+        )
     for i in reversed(range(len(parts))):  # each goes in after SOI: the last one first
         jpeg = _insert_jpeg_segment(jpeg, 0xE2, _ICC_HEADER + bytes([i + 1, len(parts)]) + parts[i])
     return jpeg

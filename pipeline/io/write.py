@@ -374,6 +374,7 @@ def encode_image(
 ) -> bytes:
     """The bytes :func:`write_image` writes (the format from ``path``'s extension)."""
     p = Path(path)
+    icc = icc or None  # an empty profile is none
     ext = p.suffix.lower()
     if ext not in WRITE_ENCODINGS:
         raise InputError(
