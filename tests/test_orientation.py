@@ -15,6 +15,7 @@ from hypothesis import example, given, settings
 from hypothesis import strategies as st
 from PIL import Image, ImageOps
 
+from pipeline.errors import InputError
 from pipeline.io.exif import read_exif
 from pipeline.io.orientation import exif_orientation, upright, upright_exif
 from pipeline.io.read import read_frame, read_preview
@@ -191,3 +192,24 @@ def test_the_saved_kernel_is_turned_with_the_image(tmp_path):
     np.testing.assert_array_equal(tifffile.imread(tmp_path / "k.tif"), np.rot90(kernel))
     np.testing.assert_array_equal(written.image, np.rot90(image))
     assert sidecar["orientation"] == 8
+
+
+def test_a_frame_saved_turned_by_a_viewer_is_named_with_the_reason(tmp_path, shared_data):
+    """One frame rotated and saved again (portrait pixels, tag 1) among frames stored in
+    landscape with tag 6: one line naming the file, its size and the likely cause."""
+    from pipeline.cli import main
+
+    sources = sorted((shared_data / "chimpstackr-beetle").glob("*.jpg"))[:3]
+    (tmp_path / "f").mkdir()
+    for i, src in enumerate(sources):
+        with Image.open(src) as image:
+            if i == 1:
+                image.transpose(Image.Transpose.ROTATE_270).save(tmp_path / "f" / src.name)
+            else:
+                exif = image.getexif()
+                exif[0x0112] = 6
+                image.save(tmp_path / "f" / src.name, exif=exif)
+    with pytest.raises(InputError, match=rf"{sources[1].name}: 500x750 px.*stored turned"):
+        process_stack(tmp_path / "f", tmp_path / "o.tif", StackOptions())
+    assert main(["-q", "stack", str(tmp_path / "f"), "-o", str(tmp_path / "o.tif")]) == 2
+    assert not (tmp_path / "o.tif").exists()

@@ -533,9 +533,16 @@ def check_frames(stack: Stack) -> FrameInfo:
     for frame in stack.frames[1:]:
         info = frame_info(frame.file)
         if info != expected:
+            turned = (info.cols, info.rows) == (expected.rows, expected.cols)
+            hint = (
+                " (it is stored turned a quarter against the others, e.g. rotated and saved "
+                "again by a viewer: export every frame alike, as the camera stored them)"
+                if turned
+                else ""
+            )
             raise InputError(
                 f"{frame.file}: {info.describe()}, but {stack.frames[0].file.name} and the "
-                f"stack expect {expected.describe()}; all frames must have one size"
+                f"stack expect {expected.describe()}; all frames must have one size{hint}"
             )
     return expected
 
