@@ -77,6 +77,10 @@ def test_one_exposure_reads_as_one_and_odd_input_as_as_shot(scene):
     broken = [f.copy() for f in frames]
     broken[1][5, 5] = np.nan
     np.testing.assert_array_equal(exposure_gains(broken, [1, 1, 1]), np.ones(3))
+    black = [frames[0], np.zeros_like(frames[1]), frames[2]]  # no gain to divide by
+    np.testing.assert_array_equal(exposure_gains(black, [1, 1, 1]), np.ones(3))
+    for weights in ([0, 0, 0], [1, np.nan, 1], [1, -1, 1]):  # no weighted sum
+        np.testing.assert_array_equal(exposure_gains(frames, weights), np.ones(3))
     dark = [f * np.float32(g) for f, g in zip(frames, (1.0, 0.5, 2.0))]  # per-row weights
     got = exposure_gains(dark, np.ones((4, 3)))
     np.testing.assert_allclose(got / got[0], [1.0, 0.5, 2.0], rtol=3e-3)

@@ -62,8 +62,9 @@ def exposure_gains(copies: Sequence[np.ndarray], weights) -> np.ndarray:
     Returns
     -------
     ndarray (frames,)
-        ``g_k`` with ``sum_k w_k g_k = 1``; all 1 where fewer than ``MIN_PIXELS`` pixels can
-        be used or every gain lies within ``DEAD_BAND`` of 1.
+        ``g_k`` with ``sum_k w_k g_k = 1``, finite and positive; all 1 where fewer than
+        ``MIN_PIXELS`` pixels can be used, every gain lies within ``DEAD_BAND`` of 1, a copy
+        is not finite, a frame reads black, or the weights sum to no positive number.
     """
     stack = np.stack([np.asarray(c, np.float32) for c in copies])
     n, rows, cols = stack.shape
@@ -71,6 +72,8 @@ def exposure_gains(copies: Sequence[np.ndarray], weights) -> np.ndarray:
         return np.ones(n)
     w = np.asarray(weights, np.float64)
     w = w.mean(axis=0) if w.ndim == 2 else w
+    if not (np.all(np.isfinite(w)) and np.all(w >= 0) and w.sum() > 0):
+        return np.ones(n)  # no weighted sum to measure against
     w = w / w.sum()
     reach = max(2, round(REACH * max(rows, cols)))
     sigma = reach / 2.0
@@ -86,6 +89,8 @@ def exposure_gains(copies: Sequence[np.ndarray], weights) -> np.ndarray:
     if np.count_nonzero(where) < MIN_PIXELS:
         return np.ones(n)
     ratios = np.array([float(np.median(b[where] / mean[where])) for b in blurred])
+    if not np.all(ratios > 0):  # a frame black where the others are not: no gain to divide by
+        return np.ones(n)
     gains = ratios / float(np.dot(w, ratios))
     if np.all(np.abs(gains - 1) <= DEAD_BAND):
         return np.ones(n)
