@@ -71,9 +71,14 @@ def test_a_stack_without_breathing_keeps_the_identity(tmp_path, sharp, given):
     assert all(np.allclose(f["homography"], np.eye(3)) for f in chosen.sidecar["frames"])
     none = _run(folder, tmp_path, "none")
     assert psnr(chosen.image, sharp) == pytest.approx(psnr(none.image, sharp), abs=0.01)
-    # what ECC alone gives: its invented breathing costs the result
-    estimated = align.estimate_alignment([read_frame(f) for f in sorted(folder.glob("*.tif"))])
-    assert max(abs(a.scale - 1.0) for a in estimated) > 0.01
+    # what ECC alone gives: its invented breathing costs the result. The similarity fits
+    # less of the blur differences than a homography (measured: 0.23% against over 1%)
+    frames = [read_frame(f) for f in sorted(folder.glob("*.tif"))]
+    invented = [
+        max(abs(a.scale - 1.0) for a in align.estimate_alignment(frames, model=model))
+        for model in ("similarity", "homography")
+    ]
+    assert 0.001 < invented[0] < invented[1] and invented[1] > 0.01
 
 
 @pytest.mark.parametrize("given", ["lens", "positions", "nothing"])
@@ -114,21 +119,21 @@ def test_a_real_breathing_stack_given_focus_steps_keeps_the_estimate(tmp_path, s
 
 
 @pytest.mark.parametrize(
-    ("folder", "pattern"),
-    [("chimpstackr-beetle", "DSC_*.jpg"), ("shinestacker-amber", "*.jpg")],
+    ("folder", "pattern", "breathing"),
+    [("chimpstackr-beetle", "DSC_*.jpg", 0.01), ("shinestacker-amber", "*.jpg", 0.001)],
 )
 def test_real_breathing_stacks_given_nothing_keep_the_estimate(tmp_path, shared_data, folder,
-                                                              pattern):
+                                                              pattern, breathing):
     """The real stacks come as plain files (no stack.toml): judged with their frames' order
-    as the positions, they keep ECC's estimate (beetle's scales 0.989-1.008, amber's
-    0.988-1.000; pcb7 and pcb10 too, in the regions benchmark)."""
+    as the positions, they keep ECC's estimate (beetle's scales 0.992-1.006, amber's
+    1.000-1.002; pcb7 and pcb10 too, in the regions benchmark)."""
     frames = sorted((shared_data / folder).glob(pattern))
     with scheduler_context(threads=2):
         result = process_stack(frames, tmp_path / "out.tif", StackOptions())
     kinds = {f["alignment"] for f in result.sidecar["frames"]}
     assert not any(k.startswith("identity") for k in kinds), kinds
     scales = [f["scale"] for f in result.sidecar["frames"]]
-    assert np.ptp(scales) > 0.005  # the breathing it keeps
+    assert np.ptp(scales) > breathing  # the breathing it keeps
 
 
 def test_without_a_lens_a_given_blur_span_is_used_and_an_unfittable_one_keeps_the_estimate(
@@ -150,3 +155,69 @@ def test_without_a_lens_a_given_blur_span_is_used_and_an_unfittable_one_keeps_th
     assert len(fitted) == 1  # only the run without --blur-span-px fits one
     assert all(f["alignment"].startswith("identity") for f in given.sidecar["frames"])
     assert not any(f["alignment"].startswith("identity") for f in unfitted.sidecar["frames"])
+
+
+def test_a_rendered_breathing_stack_is_aligned_within_a_fifth_of_a_pixel(tmp_path):
+    """The depth-edge scene rendered with the lens's breathing and exact defocus (8 frames,
+    640x480): the default model's corners land within 0.25 px of the alignment the lens's
+    geometry predicts (``analytic_alignment``, measured 0.20 px), a homography's farther
+    (0.29 px): its extra freedom fits the frames' depth-dependent blur differences."""
+    import tomllib
+
+    from pipeline.paper.bench import scenes
+
+    shape = (480, 640)
+    radiance, depth = scenes.edges_scene(shape)
+    folder = tmp_path / "breathing"
+    scenes.write_stack(
+        folder, radiance, depth, scenes.scene_lens(shape), 8, noisy=False, tolerance=1e-3
+    )
+    listed = tomllib.loads((folder / "stack.toml").read_text())["frames"]
+    frames = [read_frame(folder / f["file"]).mean(axis=-1) for f in listed]
+    truth = align.analytic_alignment([f["image_distance_mm"] for f in listed], shape)
+    rows, cols = shape
+    corners = np.array([[0, cols - 1, 0, cols - 1], [0, 0, rows - 1, rows - 1], [1, 1, 1, 1.0]])
+
+    def worst_corner(model: str) -> float:
+        found = align.estimate_alignment(frames, model=model)
+        worst = 0.0
+        for a, t in zip(found, truth):
+            p, q = a.homography @ corners, t.homography @ corners
+            worst = max(worst, float(np.hypot(*(p[:2] / p[2] - q[:2] / q[2])).max()))
+        return worst
+
+    default = worst_corner(StackOptions().align_model)
+    assert default < 0.25
+    assert default < worst_corner("homography")
+
+
+@pytest.mark.parametrize("model", ["similarity", "affine", "homography"])
+def test_the_model_is_the_flag_and_is_recorded(tmp_path, sharp, model):
+    """``--align-model`` reaches the estimate: a similarity's linear part is a turned
+    scaling (``[[a, -b], [b, a]]``), an affine's has no perspective row, a homography's may;
+    the sidecar says which (and null where nothing was estimated)."""
+    import json
+
+    from pipeline.cli import main
+
+    folder = tmp_path / "stack"
+    folder.mkdir()
+    make_stack(folder, sharp, [500.0, 800.0, 1600.0], positions_for(450, 2500, 5), noise=0.01)
+    for i, path in enumerate(sorted(folder.glob("frame_*.tif"))):
+        frame = read_frame(path)
+        magnified = align.warp(frame, _scale(frame.shape, 1.01 ** (i - 2)), frame.shape)
+        write_image(path, magnified, encoding="float32")
+    out = tmp_path / f"{model}.tif"
+    assert main(["-q", "stack", str(folder), "-o", str(out), "--align-model", model]) == 0
+    sidecar = json.loads(out.with_name(out.name + ".json").read_text())
+    assert sidecar["align_model"] == model
+    homographies = [np.array(f["homography"]) for f in sidecar["frames"]]
+    moved = [h for h in homographies if not np.allclose(h, np.eye(3))]
+    assert moved
+    for h in moved:
+        turned_scaling = np.isclose(h[0, 0], h[1, 1]) and np.isclose(h[0, 1], -h[1, 0])
+        assert turned_scaling == (model == "similarity")
+        assert np.allclose(h[2, :2], 0) == (model != "homography")
+    none = tmp_path / "none.tif"
+    assert main(["-q", "stack", str(folder), "-o", str(none), "--align", "none"]) == 0
+    assert json.loads(none.with_name(none.name + ".json").read_text())["align_model"] is None

@@ -64,10 +64,14 @@ def test_help_of_every_command_imports_no_heavy_library():
 
 def test_mirrored_constants_agree_with_the_jobs():
     from pipeline.io.write import WRITE_ENCODINGS
-    from pipeline.jobs.options import ALIGN_MODES, METHODS
+    from pipeline.jobs.options import ALIGN_MODELS, ALIGN_MODES, METHODS, StackOptions
 
     assert set(_flags.CLI_METHODS) < set(METHODS)  # the sparse prior: API only
     assert _flags.ALIGN_MODES == ALIGN_MODES
+    assert _flags.ALIGN_MODELS == ALIGN_MODELS
+    assert build_parser().parse_args(["stack", "d", "-o", "x"]).align_model == (
+        StackOptions().align_model
+    )
     assert set(_flags.ENCODINGS) == set(WRITE_ENCODINGS[".tif"])
 
 

@@ -34,7 +34,7 @@ from pipeline.io.stackfile import _TOP_KEYS as STACK_TOP_KEYS
 from pipeline.io.write import WRITE_ENCODINGS, write_image
 
 # --- names under test (modules may move: rewrite only this block) ---------------------------
-from pipeline.jobs.options import ALIGN_MODES, METHODS, StackOptions
+from pipeline.jobs.options import ALIGN_MODELS, ALIGN_MODES, METHODS, StackOptions
 from pipeline.jobs.stack import process_stack
 from pipeline.parallel.scheduler import scheduler_context
 from pipeline.workflow.ledger import LEDGER_NAME, LOCK_NAME
@@ -140,7 +140,7 @@ def test_lens_profile_keys_documented():
 def test_workflow_keys_documented():
     assert_documented(WORKFLOW_KEYS, WORKFLOW_DOC, "workflow")
     assert_documented([f"{{{name}}}" for name in _NAME_FIELDS], WORKFLOW_DOC, "workflow")
-    assert_documented([*METHODS, *ALIGN_MODES], WORKFLOW_DOC, "workflow")
+    assert_documented([*METHODS, *ALIGN_MODES, *ALIGN_MODELS], WORKFLOW_DOC, "workflow")
     encodings = {enc for allowed in WRITE_ENCODINGS.values() for enc in allowed}
     assert_documented([*WRITE_ENCODINGS, *encodings], WORKFLOW_DOC, "workflow")
     assert_documented([LEDGER_NAME, LOCK_NAME], WORKFLOW_DOC, "workflow")

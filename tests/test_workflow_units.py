@@ -267,6 +267,11 @@ def test_plan_order_options_and_defaults(tmp_path):
     assert first.options.white is None
     white = _flow(root, inputs_extra="options = { white = 4095 }\n")
     assert wplan.plan_stacks(load_workflow(white))[0].options.white == 4095.0
+    assert first.options.align_model == "similarity"
+    tilted = _flow(root, inputs_extra='options = { align_model = "homography" }\n')
+    assert wplan.plan_stacks(load_workflow(tilted))[0].options.align_model == "homography"
+    with pytest.raises(InputError, match=r"align_model .*must be one of similarity, affine"):
+        load_workflow(_flow(root, inputs_extra='options = { align_model = "perspective" }\n'))
 
 
 def test_fingerprint_follows_contents_options_and_name_not_location(tmp_path):

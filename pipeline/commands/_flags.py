@@ -8,7 +8,7 @@ heavy. The vocabulary (also the README's flag table):
 - ``--lens NAME|PATH``; depths in millimetres as ``--near-mm/--far-mm`` (a sweep or a
   depth range), ``--focus-mm``, ``--at-mm``, ``--depth-mm``; times in seconds as
   ``--exposure-s``; every quantity flag carries its unit;
-- ``--align {estimate,analytic,none}``, ``--method {wiener,rl,multiframe}``;
+- ``--align {estimate,analytic,none}`` (``--align-model``), ``--method {wiener,rl,multiframe}``;
 - ``--threads``, ``--scheduler`` for where a job runs;
 - ``--json`` on every command that produces a result;
 - ``-q/--quiet`` and ``-v/--verbose`` anywhere on the line.
@@ -30,6 +30,7 @@ from pathlib import Path
 CLI_METHODS = ("wiener", "rl", "multiframe")
 SINGLE_IMAGE_METHODS = ("wiener", "rl")
 ALIGN_MODES = ("estimate", "analytic", "none")
+ALIGN_MODELS = ("similarity", "affine", "homography")
 ENCODINGS = ("srgb16", "linear16", "float32", "srgb8")
 DEFAULT_LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 
@@ -190,6 +191,14 @@ def add_alignment(parser: argparse.ArgumentParser, *, defaults: bool = True) -> 
         help="magnification compensation: estimated homographies, the scaling predicted "
         "from the focus positions, or none",
     )
+    parser.add_argument(
+        "--align-model",
+        choices=ALIGN_MODELS,
+        default="similarity" if defaults else None,
+        help="what an estimated alignment fits: a shift, turn and scaling (focus breathing, "
+        "a rail, a steady hand), or also shear (affine) or a tilt's keystone (homography: "
+        "a wide-angle lens turned between frames)",
+    )
 
 
 def add_compute(parser: argparse.ArgumentParser) -> None:
@@ -304,6 +313,7 @@ def stack_options(args: argparse.Namespace):
         lens=getattr(args, "lens", None),
         method=given("method"),
         align=given("align"),
+        align_model=given("align_model"),
         encoding=getattr(args, "encoding", None),
         blur_span_px=getattr(args, "blur_span_px", None),
         tile_px=given("tile_px"),

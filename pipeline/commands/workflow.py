@@ -75,6 +75,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         "lens": args.lens,
         "method": args.method,
         "align": args.align,
+        "align_model": args.align_model,
         "blur_span_px": args.blur_span_px,
         "white": args.white,
         "tile_px": args.tile_px,

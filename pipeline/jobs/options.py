@@ -17,6 +17,15 @@ from pipeline.errors import InputError
 # only the main job over a focal stack offers it
 METHODS = ("wiener", "rl", "sparse", "multiframe")
 ALIGN_MODES = ("estimate", "analytic", "none")
+# --align-model: the motion an estimated alignment may fit (pipeline.core.align). A focus
+# ring's breathing is a scaling about the optical centre, a hand's or a rail's motion a shift
+# and a turn: "similarity" fits both with 4 degrees of freedom. "homography" adds the 4 of a
+# tilt (keystone), which only a wide-angle lens turned between frames shows; on the
+# stacks of issue 13 they fit the blur differences instead: rendered breathing stacks' corners
+# 0.29-0.35 px from the truth against 0.17-0.21 px, real stacks' corners moving 2.2-12 px
+# (similarity 0.9-5.6 px) when the frames are cropped
+# (tests/benchmarks/results/align/align_models.md)
+ALIGN_MODELS = ("similarity", "affine", "homography")
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
 
 
@@ -27,6 +36,7 @@ class StackOptions:
     lens: str | None = None
     method: str = "wiener"
     align: str = "estimate"
+    align_model: str = "similarity"
     encoding: str | None = None
     blur_span_px: float | None = None
     tile_px: int = 1024
@@ -61,6 +71,11 @@ class StackOptions:
             raise InputError(f"method must be one of {', '.join(METHODS)}, got {self.method!r}")
         if self.align not in ALIGN_MODES:
             raise InputError(f"align must be one of {', '.join(ALIGN_MODES)}, got {self.align!r}")
+        if self.align_model not in ALIGN_MODELS:
+            raise InputError(
+                f"align_model (--align-model) must be one of {', '.join(ALIGN_MODELS)}, "
+                f"got {self.align_model!r}"
+            )
         if self.blur_span_px is not None:
             validate.positive("blur_span_px (--blur-span-px)", self.blur_span_px)
         if self.white is not None:

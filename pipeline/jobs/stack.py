@@ -590,6 +590,7 @@ def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, optio
         "lens": (lens.source or lens.name) if lens else None,
         "method": method,
         "align": options.align,
+        "align_model": options.align_model if options.align == "estimate" else None,
         "positions_source": aligned.positions_source,
         "frames": frames_meta,
         "partial_stack": aligned.stack.partial,
@@ -878,6 +879,7 @@ def _align(stack, options, positions, absolute, previews, shape, lens=None):
         return align.analytic_alignment(positions, shape)
     estimated = align.estimate_alignment(  # warns of each fallback, naming the files
         previews,
+        model=options.align_model,
         max_side_px=options.align_max_side_px,
         workers=local_workers(),
         names=[path.name for path in stack.files],

@@ -128,6 +128,7 @@ def plan_stacks(
             lens=merged.get("lens"),
             method=merged.get("method", "wiener"),
             align=merged.get("align", "estimate"),
+            align_model=merged.get("align_model", "similarity"),
             encoding=workflow.encoding,
             blur_span_px=merged.get("blur_span_px"),
             white=merged.get("white"),

@@ -14,7 +14,7 @@ from pipeline.errors import InputError
 from pipeline.io.profiles import resolve_lens_path
 from pipeline.io.stackfile import check_toml_keys
 from pipeline.io.write import WRITE_ENCODINGS
-from pipeline.jobs.options import ALIGN_MODES, METHODS
+from pipeline.jobs.options import ALIGN_MODELS, ALIGN_MODES, METHODS
 from pipeline.workflow.ledger import LEDGER_NAME
 
 _TOP_KEYS = ("description", "inputs", "options", "output", "run", "schedule")
@@ -23,6 +23,7 @@ _OPTION_KEYS = (
     "lens",
     "method",
     "align",
+    "align_model",
     "blur_span_px",
     "white",
     "tile_px",
@@ -121,7 +122,7 @@ def _parse_options(path: Path, table: dict, where: str) -> dict:
     check_toml_keys(path, table, _OPTION_KEYS, where)
     options: dict = {}
     for key, value in table.items():
-        if key in ("lens", "method", "align"):
+        if key in ("lens", "method", "align", "align_model"):
             _typed(path, where, key, value, str)
         elif key in ("blur_span_px", "white"):
             _typed(path, where, key, value, (int, float))
@@ -143,6 +144,11 @@ def _parse_options(path: Path, table: dict, where: str) -> dict:
         raise InputError(
             f"{path}: align{where} must be one of {', '.join(ALIGN_MODES)}, "
             f"got {options['align']!r}"
+        )
+    if "align_model" in options and options["align_model"] not in ALIGN_MODELS:
+        raise InputError(
+            f"{path}: align_model{where} must be one of {', '.join(ALIGN_MODELS)}, "
+            f"got {options['align_model']!r}"
         )
     if "lens" in options:
         try:

@@ -14,14 +14,13 @@ breathing, the estimate's largest displacement of a frame corner (px) from the i
 from __future__ import annotations
 
 import argparse
-import functools
 import itertools
 import tempfile
 from pathlib import Path
 
 import numpy as np
 
-from pipeline.core import align, simulate
+from pipeline.core import simulate
 from pipeline.core.scene import Scene
 from pipeline.io import profiles, write
 from pipeline.jobs.options import StackOptions
@@ -70,15 +69,10 @@ def corner_error_px(homographies, shape) -> float:
 
 def compare_models(stack: Path, out: Path, truth, breathing: bool):
     """PSNR cells (``--align none``, then each model) and corner displacements of a stack."""
-    estimate = align.estimate_alignment
     cells = [f"{psnr(process_stack(stack, out, StackOptions(align='none')).image, truth):.2f}"]
     corners = []
     for model in MODELS:
-        align.estimate_alignment = functools.partial(estimate, model=model)
-        try:
-            result = process_stack(stack, out, StackOptions())
-        finally:
-            align.estimate_alignment = estimate
+        result = process_stack(stack, out, StackOptions(align_model=model))
         cells.append(f"{psnr(result.image, truth):.2f}")
         homographies = [f["homography"] for f in result.sidecar["frames"]]
         corners.append("-" if breathing else f"{corner_error_px(homographies, SHAPE):.2f}")

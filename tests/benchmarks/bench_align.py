@@ -31,7 +31,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("stack", nargs="?", type=Path, default=DEFAULT)
     parser.add_argument("--max-side-px", type=int, default=768)
-    parser.add_argument("--model", default="homography")
+    parser.add_argument("--model", default="similarity")
     args = parser.parse_args()
     files = sorted(p for p in args.stack.iterdir() if p.suffix.lower() in (".jpg", ".jpeg"))
     n = len(files)
