@@ -9,6 +9,14 @@ kept), so that they differ only in what the variant changes:
 * ``exposure ramp``: gains of +8% .. -8% in linear light from the first frame to the last (the
   effective aperture of a macro lens changing with its magnification);
 * ``flicker``: gains of 0.85-1.10 frame to frame (mains-lit scenes, flash recycling).
+* ``handheld``: every frame moved as a hand holding the camera moves it, a seeded shift of up
+  to 1.5% of the frame's side and a turn of up to 0.5 degrees about its centre, then all
+  frames cropped to the same window inside what every moved frame covers (so no frame shows a
+  border) and reduced to half size: the case a focusing rail never gives and a handheld or
+  bumped stack always does. The reduction (area averaging) removes the frequencies that the
+  move's interpolation smoothed, which would otherwise lower every frame's noise by a
+  different amount;
+* ``half size``: the control of ``handheld``, the same crop and reduction without the move.
 
 Each variant is scored by ``real_stack_regions.py`` against focus-stack made from the same
 files (``--focus-stack``; its default matches each frame's contrast and white balance, its
@@ -28,6 +36,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import numpy as np
 from PIL import Image
 
@@ -36,12 +45,17 @@ from real_stack_regions import good_regions  # the region counts of the main ben
 from real_stacks import SHARED, STACKS
 
 HERE = Path(__file__).resolve().parent
-# variant -> (EXIF orientation, per-frame gain in linear light as a function of n frames)
+HANDHELD_SHIFT = 0.015  # of the frame's side, at most
+HANDHELD_TURN_DEG = 0.5
+# variant -> (EXIF orientation, per-frame gain in linear light as a function of n frames,
+# how the frames are moved: None, "crop" (cropped as "hand" and halved, not moved), "hand")
 VARIANTS = {
-    "as shot": (1, lambda n: np.ones(n)),
-    "portrait": (6, lambda n: np.ones(n)),
-    "exposure ramp": (1, lambda n: np.linspace(1.08, 0.92, n)),
-    "flicker": (1, lambda n: np.resize([1.0, 0.85, 1.0, 1.10, 1.0, 0.90], n)),
+    "as shot": (1, lambda n: np.ones(n), None),
+    "portrait": (6, lambda n: np.ones(n), None),
+    "exposure ramp": (1, lambda n: np.linspace(1.08, 0.92, n), None),
+    "flicker": (1, lambda n: np.resize([1.0, 0.85, 1.0, 1.10, 1.0, 0.90], n), None),
+    "half size": (1, lambda n: np.ones(n), "crop"),
+    "handheld": (1, lambda n: np.ones(n), "hand"),
 }
 
 
@@ -53,15 +67,45 @@ def _linear_to_srgb(x: np.ndarray) -> np.ndarray:
     return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.abs(x) ** (1 / 2.4) - 0.055)
 
 
-def make_variant(frames: list[Path], folder: Path, orientation: int, gains) -> None:
-    """The frames re-encoded into ``folder`` with ``gains`` and EXIF ``orientation``."""
+def hand_motions(n: int, shape: tuple[int, int], seed: int = 13) -> tuple[list, tuple]:
+    """Seeded 2x3 rigid motions of ``n`` frames of ``shape`` and the crop ``(y0, x0, h, w)``
+    inside what every moved frame covers (the turn's corners and the largest shift kept out)."""
+    rows, cols = shape
+    rng = np.random.default_rng(seed)
+    margin = 0
+    motions = []
+    for _ in range(n):
+        dy, dx = rng.uniform(-HANDHELD_SHIFT, HANDHELD_SHIFT, 2) * np.array([rows, cols])
+        turn = rng.uniform(-HANDHELD_TURN_DEG, HANDHELD_TURN_DEG)
+        m = cv2.getRotationMatrix2D(((cols - 1) / 2, (rows - 1) / 2), turn, 1.0)
+        m[:, 2] += (dx, dy)
+        motions.append(m)
+        turn_px = abs(np.sin(np.radians(turn))) * max(rows, cols) / 2
+        margin = max(margin, int(np.ceil(max(abs(dx), abs(dy)) + turn_px)) + 2)
+    return motions, (margin, margin, rows - 2 * margin, cols - 2 * margin)
+
+
+def make_variant(
+    frames: list[Path], folder: Path, orientation: int, gains, motion: str | None
+) -> None:
+    """The frames re-encoded into ``folder`` with ``gains`` and EXIF ``orientation``; with
+    ``motion`` "hand" moved as by hand, cropped and halved, with "crop" only cropped alike
+    and halved."""
     folder.mkdir(parents=True, exist_ok=True)
-    for path, gain in zip(frames, gains):
+    for k, (path, gain) in enumerate(zip(frames, gains)):
         with Image.open(path) as image:
             exif = image.getexif()
             codes = np.asarray(image.convert("RGB"), np.float64) / 255
         exif[0x0112] = orientation
-        linear = np.clip(_srgb_to_linear(codes) * gain, 0, 1)
+        linear = np.clip(_srgb_to_linear(codes) * gain, 0, 1).astype(np.float32)
+        if motion is not None:
+            motions, (y0, x0, h, w) = hand_motions(len(frames), linear.shape[:2])
+            if motion == "hand":
+                size = (linear.shape[1], linear.shape[0])
+                linear = cv2.warpAffine(linear, motions[k], size, flags=cv2.INTER_LANCZOS4)
+            window = linear[y0 : y0 + h, x0 : x0 + w]
+            linear = cv2.resize(window, (w // 2, h // 2), interpolation=cv2.INTER_AREA)
+            linear = np.clip(linear, 0, 1)
         out = np.round(_linear_to_srgb(linear) * 255).astype(np.uint8)
         Image.fromarray(out).save(folder / f"{path.stem}.jpg", quality=95, exif=exif)
 
@@ -75,16 +119,26 @@ def main() -> int:
     )
     parser.add_argument("--flexdof-args", default="", help="added to --threads 2")
     parser.add_argument(
+        "--variants",
+        default=",".join(VARIANTS),
+        help=f"comma-separated, of: {', '.join(VARIANTS)} (default all)",
+    )
+    parser.add_argument(
         "--label", default="", help="names the results: OUT/camera_variants_LABEL.md"
     )
     args = parser.parse_args()
     frames = [Path(p) for p in sorted(glob.glob(str(SHARED / STACKS[args.stack])))]
     rows = []
-    for variant, (orientation, gains) in VARIANTS.items():
+    chosen = [v.strip() for v in args.variants.split(",")]
+    unknown = sorted(set(chosen) - set(VARIANTS))
+    if unknown:
+        parser.error(f"--variants: unknown {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
+    for variant in chosen:
+        orientation, gains, motion = VARIANTS[variant]
         label = f"-{args.label}" if args.label else ""
         name = f"{args.stack}-{variant.replace(' ', '-')}{label}"
         folder = args.out / "frames" / name
-        make_variant(frames, folder, orientation, gains(len(frames)))
+        make_variant(frames, folder, orientation, gains(len(frames)), motion)
         scored = args.out / name
         subprocess.run(
             [
