@@ -142,7 +142,9 @@ def prepare(name: str, directory: Path, truth: np.ndarray) -> Prepared:
     return Prepared(name, directory, truth, positions, average, clipped, kernel, samples)
 
 
-def _estimated(files, shape, max_side_px: int) -> list[np.ndarray]:
+def _estimated(
+    files, shape, max_side_px: int, model: str = StackOptions.align_model
+) -> list[np.ndarray]:
     previews = read_previews(files, max_side_px)
-    found = align.estimate_alignment(previews, max_side_px=max_side_px)
+    found = align.estimate_alignment(previews, model=model, max_side_px=max_side_px)
     return [align.rescale_homography(a.homography, previews[0].shape, shape[:2]) for a in found]

@@ -17,7 +17,7 @@ from pipeline.core.quality import psnr
 from pipeline.core.scene import Camera, Scene
 from pipeline.io import profiles
 from pipeline.io.stackfile import check_frames, load_stack
-from pipeline.jobs.options import StackOptions
+from pipeline.jobs.options import ALIGN_MODELS, StackOptions
 from pipeline.jobs.stack import process_stack
 from pipeline.paper.bench.pareto import Config, Row, default_of
 from pipeline.paper.bench.scenes import (
@@ -148,16 +148,19 @@ def simulation_rows(config: Config, radiance: np.ndarray, depth: np.ndarray) -> 
 
 # ----------------------------------------------------------------------------- alignment
 def alignment_rows(config: Config, prepared: Sequence[Prepared], work: Path) -> list[Row]:
-    """None / analytic / estimated alignment: corner error and final PSNR."""
+    """None / analytic / estimated alignment (at each matching size, and under each motion
+    model at the default size): corner error and final PSNR."""
     return [row for prep in prepared for row in _alignment_rows(config, prep, work)]
 
 
-def _homographies(mode: str, side: int, files, positions, shape) -> list[np.ndarray]:
+def _homographies(
+    mode: str, side: int, files, positions, shape, model: str = StackOptions.align_model
+) -> list[np.ndarray]:
     if mode == "none":
         return [np.eye(3)] * len(files)
     if mode == "analytic":
         return [a.homography for a in align.analytic_alignment(positions, shape)]
-    return _estimated(files, shape, side)
+    return _estimated(files, shape, side, model)
 
 
 def _corner_error(homographies, truth, shape) -> float:
@@ -180,20 +183,29 @@ def _alignment_rows(config: Config, prep: Prepared, work: Path) -> list[Row]:
     stack = load_stack(prep.directory)
     shape = check_frames(stack).shape
     truth = _homographies("analytic", 0, stack.files, prep.positions, shape)
-    settings = [("none", "none", 0, False), ("analytic", "analytic", 0, False)]
+    default_model, default_side = StackOptions.align_model, StackOptions.align_max_side_px
+    settings = [
+        ("none", "none", 0, default_model, False),
+        ("analytic", "analytic", 0, default_model, False),
+    ]
     settings += [
-        (f"estimate @{s} px", "estimate", s, s == StackOptions.align_max_side_px)
+        (f"estimate @{s} px", "estimate", s, default_model, s == default_side)
         for s in config.align_sides_px
     ]
+    settings += [
+        (f"estimate @{default_side} px, --align-model {m}", "estimate", default_side, m, False)
+        for m in ALIGN_MODELS
+        if m != default_model
+    ]
     pending = []
-    for label, mode, side, default in settings:
+    for label, mode, side, model, default in settings:
         requires = "absolute focus positions" if mode == "analytic" else ""
         corner = partial(
             Row, "alignment", "alignment (corner error)", prep.name, label, default, "corner_px"
         )
         pending.append(
             PendingRun(
-                partial(_homographies, mode, side, stack.files, prep.positions, shape),
+                partial(_homographies, mode, side, stack.files, prep.positions, shape, model),
                 lambda seconds, hs, corner=corner, requires=requires: corner(
                     _corner_error(hs, truth, shape), seconds, requires
                 ),
@@ -202,8 +214,10 @@ def _alignment_rows(config: Config, prep: Prepared, work: Path) -> list[Row]:
         final = partial(
             Row, "alignment", "alignment (final PSNR)", prep.name, label, default, "psnr_db"
         )
-        options = StackOptions(align=mode, align_max_side_px=side or 768, encoding="float32")
-        out = work / f"align-{prep.name}-{mode}-{side}.tif"
+        options = StackOptions(
+            align=mode, align_model=model, align_max_side_px=side or 768, encoding="float32"
+        )
+        out = work / f"align-{prep.name}-{mode}-{side}-{model}.tif"
         pending.append(
             PendingRun(
                 partial(process_stack, prep.directory, out, options),
