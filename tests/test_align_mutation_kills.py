@@ -604,17 +604,48 @@ def _fails(msg):
     return align._EstimationError(msg)
 
 
-def test_auto_accepts_ecc_at_min_correlation_and_tries_no_features(monkeypatch):
-    stubs = Stubs(monkeypatch, {(0, 1): {"ecc": (T(2.0, 1.0), 0.5)}})
+def test_auto_accepts_a_confident_ecc_and_tries_no_features(monkeypatch):
+    stubs = Stubs(monkeypatch, {(0, 1): {"ecc": (T(2.0, 1.0), 0.9)}})
     al = estimate_alignment(_frames(2), workers=0)
     assert stubs.calls == [("ecc", (0, 1))]
     a = al[0]
-    assert (a.method, a.ok, a.message, a.correlation) == ("ecc", True, "", 0.5)
+    assert (a.method, a.ok, a.message, a.correlation) == ("ecc", True, "", 0.9)
     np.testing.assert_allclose(a.homography, T(2.0, 1.0), atol=1e-12)
     assert a.scale == 1.0
     r = al[1]  # the default reference: len // 2
     assert (r.method, r.ok, r.scale, r.correlation) == ("reference", True, 1.0, 1.0)
     np.testing.assert_array_equal(r.homography, np.eye(3))
+
+
+@pytest.mark.parametrize("ecc_cc", [0.5, 0.89])
+def test_auto_checks_a_doubtful_ecc_against_features_and_keeps_it_if_they_fail(
+    monkeypatch, ecc_cc
+):
+    """Below 0.9 ECC may sit in a false optimum (a frame moved by hand: 0.75, 40 px off):
+    features are tried too; where they fail, ECC's estimate at min_correlation stands."""
+    table = {(0, 1): {"ecc": (T(2.0, 1.0), ecc_cc), "feat": _fails("too few matches")}}
+    stubs = Stubs(monkeypatch, table)
+    al = estimate_alignment(_frames(2), workers=0)
+    assert stubs.calls == [("ecc", (0, 1)), ("features", (0, 1))]
+    a = al[0]
+    assert (a.method, a.ok, a.correlation) == ("ecc", True, ecc_cc)
+    np.testing.assert_allclose(a.homography, T(2.0, 1.0), atol=1e-12)
+
+
+def test_auto_prefers_features_that_correlate_better_than_a_doubtful_ecc(monkeypatch):
+    table = {
+        (0, 1): {
+            "ecc": (T(2.0, 1.0), 0.75),
+            "feat": T(40.0, 0.0),
+            "fcc": 0.8,
+            "refine": (T(40.2, 0.0), 0.99),
+        }
+    }
+    stubs = Stubs(monkeypatch, table)
+    al = estimate_alignment(_frames(2), workers=0)
+    assert stubs.calls == [("ecc", (0, 1)), ("features", (0, 1)), ("refine", (0, 1))]
+    assert (al[0].method, al[0].correlation) == ("features+ecc", 0.99)
+    np.testing.assert_allclose(al[0].homography, T(40.2, 0.0), atol=1e-12)
 
 
 @pytest.mark.parametrize(
