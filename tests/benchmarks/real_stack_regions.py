@@ -205,35 +205,68 @@ def run_focus_stack(
     if shared.exists() and not as_shot:
         return shared
     out = work / f"{name}_focus-stack{'-as-shot' if as_shot else ''}.png"
-    if out.exists() or binary is None:
+    if out.exists() or _failed(out).exists() or binary is None:
         return out if out.exists() else None
     files = sorted(glob.glob(str(SHARED / pattern)))
     flags = AS_SHOT if as_shot else []
-    subprocess.run([binary, *flags, f"--output={out}", *files], check=True, capture_output=True)
-    return out
+    ok = _attempt(name, AS_SHOT_PEER if as_shot else "focus-stack", out,
+                  [binary, *flags, f"--output={out}", *files])  # fmt: skip
+    return out if ok else None
+
+
+def _failed(out: Path) -> Path:
+    """Where a peer's refusal to make ``out`` is recorded (what it said)."""
+    return out.with_name(out.name + ".failed")
+
+
+def _attempt(name: str, peer: str, out: Path, argv: list[str]) -> bool:
+    """Run a peer's command; where it gives up (an error exit, or no ``out``: focus-stack
+    exits 0 on some failures), record the line that says why in ``_failed(out)``."""
+    done = subprocess.run(argv, capture_output=True)
+    if done.returncode == 0 and out.exists():
+        return True
+    # what it said on stderr, without progress lines (focus-stack's "[ 3/41] ...") and
+    # align_image_stack's closing "Exiting...": its last paragraph
+    said = [ln.strip() for ln in done.stderr.decode(errors="replace").splitlines()]
+    said = [ln for ln in said if not ln.startswith("[") and ln != "Exiting..."]
+    paragraphs = " ".join(ln or "\n" for ln in said).split("\n")
+    last = [par.strip() for par in paragraphs if par.strip()]
+    reason = last[-1] if last else f"exit code {done.returncode}"
+    _failed(out).write_text(f"{Path(argv[0]).name}: {reason}\n")
+    print(f"{name}: {peer} gave no result: {reason}", flush=True)
+    return False
+
+
+def peer_failures(name: str, work: Path) -> dict[str, str]:
+    """What each peer said where it gave up on ``name`` (peer name -> its message)."""
+    outs = {
+        "focus-stack": work / f"{name}_focus-stack.png",
+        AS_SHOT_PEER: work / f"{name}_focus-stack-as-shot.png",
+        "enfuse": work / f"{name}_enfuse.tif",
+    }
+    return {peer: _failed(o).read_text().strip() for peer, o in outs.items() if _failed(o).exists()}
 
 
 def run_enfuse(name: str, pattern: str, work: Path) -> Path | None:
-    """Cached align_image_stack + enfuse result, or None when they are not installed."""
+    """Cached align_image_stack + enfuse result, or None when they are not installed or
+    give up (what they said is recorded, see :func:`peer_failures`)."""
     out = work / f"{name}_enfuse.tif"
-    if out.exists():
-        return out
+    if out.exists() or _failed(out).exists():
+        return out if out.exists() else None
     if not (shutil.which("align_image_stack") and shutil.which("enfuse")):
         return None
     files = sorted(glob.glob(str(SHARED / pattern)))
     tmp = work / f"{name}_enfuse_aligned"
     tmp.mkdir(parents=True, exist_ok=True)
-    subprocess.run(
-        ["align_image_stack", "-m", "--use-given-order", "-a", str(tmp / "al_"), *files],
-        check=True,
-        capture_output=True,
-    )
-    aligned = sorted(str(p) for p in tmp.glob("al_*.tif"))
-    subprocess.run(
-        ["enfuse", *ENFUSE_ARGS, "-o", str(out), *aligned], check=True, capture_output=True
-    )
+    first = tmp / "al_0000.tif"  # align_image_stack's first aligned frame
+    argv = ["align_image_stack", "-m", "--use-given-order", "-a", str(tmp / "al_"), *files]
+    if _attempt(name, "enfuse", first, argv):
+        aligned = sorted(str(p) for p in tmp.glob("al_*.tif"))
+        _attempt(name, "enfuse", out, ["enfuse", *ENFUSE_ARGS, "-o", str(out), *aligned])
+    else:
+        _failed(first).rename(_failed(out))
     shutil.rmtree(tmp)
-    return out
+    return out if out.exists() else None
 
 
 # ----------------------------------------------------------------------------- crops
@@ -347,14 +380,16 @@ def evaluate(
         if k in methods
     }
 
-    # crops: flexdof | focus-stack | the region's sharpest frame
-    peer = methods.get("focus-stack", flex)
+    # crops: flexdof | focus-stack (as shot, or enfuse, where it gave no result) | the
+    # region's sharpest frame
+    shown = next((m for m in ("focus-stack", AS_SHOT_PEER, "enfuse") if m in methods), "flexdof")
+    peer = methods[shown]
     corner, per_region = crop_windows(
         flex, peer, ref.valid, ref.regions, min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
     )
     size = min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
     more = [k for k in (extra or {}) if k in methods]
-    names = ["flexdof", "focus-stack"]
+    names = ["flexdof", shown]
     best = sharpest_in(frames, *corner, size)
     cv2.imwrite(
         str(out / f"{name}_maxdiff.png"),
@@ -378,7 +413,7 @@ def evaluate(
                     [flex, peer, frames[best], *(methods[k] for k in more)],
                     [
                         f"{REGION_NAMES[r]}: flexdof",
-                        "focus-stack",
+                        shown,
                         f"sharpest frame here: {best}",
                         *more,
                     ],
@@ -402,6 +437,7 @@ def evaluate(
         "scores": scores,
         "sharpness_paired": paired,
         "psnr_against": fidelity,
+        "peer_failures": peer_failures(name, work),
         "seconds": time.perf_counter() - t0,
     }
 
@@ -484,6 +520,8 @@ def report(results: dict, args) -> str:
             f"`{name}_regions.png`.",
             "",
         ]
+        for peer, said in res.get("peer_failures", {}).items():
+            lines += [f"{peer} gave no result: {said}", ""]
         methods = [
             m
             for m in (
