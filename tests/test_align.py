@@ -478,32 +478,16 @@ def test_real_beetle_stack(shared_data):
     assert np.all(np.diff(scales) > 0), scales
 
 
-def feature_scales(shared_data: Path, where: tuple[str, str, str]) -> np.ndarray:
-    """Each frame's magnification against the middle one from SIFT matches at full
-    resolution and a RANSAC similarity (OpenCV's ``estimateAffinePartial2D``): an
-    estimator that shares nothing with ECC's intensity fit."""
-    files = sorted((shared_data / where[0] / where[1]).glob(where[2]))
-    sift = cv2.SIFT_create(8000)
-    found = [sift.detectAndCompute(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE), None) for f in files]
-    ref_points, ref_descriptors = found[len(files) // 2]
-    scales = []
-    for points, descriptors in found:
-        pairs = cv2.BFMatcher().knnMatch(descriptors, ref_descriptors, k=2)
-        good = [a for a, b in pairs if a.distance < 0.7 * b.distance]
-        src = np.float32([points[a.queryIdx].pt for a in good])
-        dst = np.float32([ref_points[a.trainIdx].pt for a in good])
-        m, _ = cv2.estimateAffinePartial2D(src, dst, method=cv2.RANSAC, ransacReprojThreshold=1.5)
-        scales.append(1 / math.sqrt(abs(np.linalg.det(m[:, :2]))))
-    return np.array(scales)
-
-
 @pytest.mark.shared_data
 @pytest.mark.parametrize("where", [BEETLE, PCB7])
 def test_real_magnifications_agree_with_feature_matches(shared_data, where):
     """The default model's magnifications on real stacks agree with SIFT's within 0.2%
     (measured: 0.10% beetle, 0.13% pcb7). A homography's extra freedom fits the blur
     differences between frames instead: its magnifications were 0.35% and 0.23% off."""
-    truth = feature_scales(shared_data, where)
+    from benchmarks.align_models import feature_scales  # SIFT + RANSAC, as the benchmark
+
+    files = sorted((shared_data / where[0] / where[1]).glob(where[2]))
+    truth = feature_scales([str(f) for f in files])
     frames = [load() for load in read_stack(shared_data, where)]
     found = {
         model: np.array([a.scale for a in estimate_alignment(frames, model=model)])

@@ -258,25 +258,26 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         help="the value of white in float TIFF frames in other units (e.g. 4095 for a "
         "12-bit sensor's counts; default: white in stack.toml, else 1)",
     )
-    parser.add_argument(
+    _switch(
+        parser,
         "--frame-guard",
-        dest="frame_guard",
-        action="store_const",
-        const=True,
-        help="for real photographs: keep the result within the aligned frames' range, take "
+        "frame_guard",
+        True,
+        "for real photographs: keep the result within the aligned frames' range, take "
         "the sharpest frame where it shows more detail, hold the noise to a frame's and "
         "double a fitted blur span (slower; worse on stacks that follow the paper's model)",
     )
-    parser.add_argument(
+    _switch(
+        parser,
         "--no-frame-range",
-        dest="frame_range",
-        action="store_const",
-        const=False,
-        help="the paper's linear result as it is (by default, where every aligned frame is flat "
+        "frame_range",
+        False,
+        "the paper's linear result as it is (by default, where every aligned frame is flat "
         "the result's fine band is taken from their average, and the result is clipped to the "
         "frames' 3x3 range: no amplified noise in flat areas, no rims or dark moats)",
     )
     add_match_exposure(parser)
+    add_crop(parser)
     parser.add_argument(
         "--max-pixels",
         type=int,
@@ -286,14 +287,33 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
     add_compute(parser)
 
 
+def _switch(parser: argparse.ArgumentParser, flag: str, dest: str, value: bool, help: str):
+    """A flag that sets ``dest`` to ``value``; left out, ``dest`` is ``None`` (the job's
+    default, or a workflow file's)."""
+    parser.add_argument(flag, dest=dest, action="store_const", const=value, help=help)
+
+
+def add_crop(parser: argparse.ArgumentParser) -> None:
+    """``--crop``: the result cropped to the area every aligned frame covers."""
+    _switch(
+        parser,
+        "--crop",
+        "crop",
+        True,
+        "crop the result to the area every aligned frame covers (frames moved between "
+        "shots leave borders filled from their edges; by default the result keeps the "
+        "reference frame's size and the sidecar's common_area says where that area is)",
+    )
+
+
 def add_match_exposure(parser: argparse.ArgumentParser) -> None:
     """``--match-exposure``: each frame divided by its own exposure."""
-    parser.add_argument(
+    _switch(
+        parser,
         "--match-exposure",
-        dest="match_exposure",
-        action="store_const",
-        const=True,
-        help="for frames shot at different exposures (a flash's output, flicker, a macro "
+        "match_exposure",
+        True,
+        "for frames shot at different exposures (a flash's output, flicker, a macro "
         "lens's effective aperture): divide each by its own, measured on the aligned frames "
         "(by default they are measured and reported only)",
     )
@@ -323,4 +343,5 @@ def stack_options(args: argparse.Namespace):
         frame_range=given("frame_range"),
         white=getattr(args, "white", None),
         match_exposure=given("match_exposure"),
+        crop=given("crop"),
     )

@@ -44,6 +44,7 @@ def register(subparsers) -> None:
     )
     _flags.add_alignment(parser)
     _flags.add_match_exposure(parser)
+    _flags.add_crop(parser)
     _flags.add_compute(parser)
     _flags.add_json(parser)
     parser.set_defaults(func=run)

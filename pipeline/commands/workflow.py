@@ -82,6 +82,7 @@ def _overrides(args: argparse.Namespace) -> dict:
         "frame_guard": args.frame_guard,
         "frame_range": args.frame_range,
         "match_exposure": args.match_exposure,
+        "crop": args.crop,
         "concurrency": args.concurrency,
         "threads_per_stack": args.threads,
         "scheduler": args.scheduler,

@@ -65,6 +65,10 @@ class StackOptions:
     # shot lost up to 0.78 dB; on beetle's flash-lit frames 6/9 regions as good as
     # focus-stack against 9/9 as shot. False: as shot (the exposures measured and reported)
     match_exposure: bool = False
+    # --crop: the result cropped to the area every aligned frame covers
+    # (pipeline.core.common_area); False: the reference frame's size, with the strips some
+    # frame does not reach filled from its edge (the sidecar's common_area says where)
+    crop: bool = False
 
     def __post_init__(self) -> None:
         if self.method not in METHODS:

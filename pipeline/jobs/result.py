@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.core.common_area import common_area
 from pipeline.core.stack_kernel import wiener_options
 from pipeline.errors import InputError
 from pipeline.io.exif import fits_jpeg, read_exif
@@ -118,6 +119,49 @@ def restore_image(
     return result
 
 
+# below this share of the result covered by every frame, its edge-filled borders are warned of
+COMMON_AREA_WARNING = 0.9
+
+
+def _common_box(sidecar: dict, shape: tuple[int, int], code: int):
+    """The rectangle every frame covers (:func:`pipeline.core.common_area.common_area`),
+    ``(row, col, height, width)`` in the written (upright) result's pixels; ``None`` for a
+    result of one frame (a sweep) or frames that share no area."""
+    homographies = [f["homography"] for f in sidecar.get("frames", []) if "homography" in f]
+    if len(homographies) < 2:
+        return None
+    found = common_area(homographies, shape)
+    if found is None:
+        return None
+    y, x, h, w = found
+    inside = np.zeros(shape, np.uint8)
+    inside[y : y + h, x : x + w] = 1
+    turned = upright(inside, code)
+    rows, cols = np.nonzero(turned.any(axis=1))[0], np.nonzero(turned.any(axis=0))[0]
+    return int(rows[0]), int(cols[0]), int(rows[-1] - rows[0] + 1), int(cols[-1] - cols[0] + 1)
+
+
+def _report_common_area(output, result, box, sidecar, options) -> np.ndarray:
+    """Record the area every frame covers in the sidecar (``common_area``), warn where it is
+    small (the frames moved between shots: the rest is filled from their edges), and crop
+    the result to it with ``options.crop`` (``--crop``)."""
+    y, x, h, w = box
+    fraction = h * w / (result.shape[0] * result.shape[1])
+    area = {"x": x, "y": y, "width": w, "height": h, "fraction": round(fraction, 4)}
+    sidecar["common_area"] = area
+    crop = bool(getattr(options, "crop", False))
+    sidecar["cropped"] = crop
+    if crop:
+        return np.ascontiguousarray(result[y : y + h, x : x + w])
+    if fraction < COMMON_AREA_WARNING:
+        log.warning(
+            "%s: every frame covers only %.0f%% of the result (frames moved between shots); "
+            "outside %dx%d+%d+%d it is filled from the frames' edges: pass --crop, or crop "
+            "it there (the sidecar's common_area)", output, 100 * fraction, w, h, x, y,
+        )  # fmt: skip
+    return result
+
+
 def write_result(output, result, kernel, sidecar, timings, start, options, inputs) -> StackResult:
     """Write the image, the optional kernel and ``OUTPUT.json`` as one result.
 
@@ -138,9 +182,12 @@ def write_result(output, result, kernel, sidecar, timings, start, options, input
     sidecar_path = output.with_name(output.name + ".json")
     staged: list[tuple[Path, Path]] = []
     code = stack_orientation(inputs)
+    box = _common_box(sidecar, result.shape[:2], code)
     result = upright(result, code)
     kernel = None if kernel is None else upright(kernel, code)
     sidecar["orientation"] = code
+    if box is not None:
+        result = _report_common_area(output, result, box, sidecar, options)
     exif, icc = upright_exif(read_exif(inputs[0])), read_icc(inputs[0])
     if exif is not None and output.suffix.lower() in (".jpg", ".jpeg") and not fits_jpeg(exif):
         log.warning(

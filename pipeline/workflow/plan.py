@@ -137,6 +137,7 @@ def plan_stacks(
             frame_guard=merged.get("frame_guard", False),
             frame_range=merged.get("frame_range", True),
             match_exposure=merged.get("match_exposure", False),
+            crop=merged.get("crop", False),
         )
         if spec.directories is not None:
             pattern = str(base / spec.directories)

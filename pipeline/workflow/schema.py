@@ -31,6 +31,7 @@ _OPTION_KEYS = (
     "frame_guard",
     "frame_range",
     "match_exposure",
+    "crop",
 )
 _OUTPUT_KEYS = ("directory", "name", "encoding")
 _RUN_KEYS = ("concurrency", "threads_per_stack", "scheduler", "retry_failed")
@@ -129,7 +130,7 @@ def _parse_options(path: Path, table: dict, where: str) -> dict:
             if not 0 < value < float("inf"):
                 raise InputError(f"{path}: {key}{where} must be a finite number > 0, got {value!r}")
             value = float(value)
-        elif key in ("frame_guard", "frame_range", "match_exposure"):
+        elif key in ("frame_guard", "frame_range", "match_exposure", "crop"):
             _typed(path, where, key, value, bool)
         else:
             _typed(path, where, key, value, int)

@@ -124,9 +124,8 @@ def verdict_cell(result: dict, peer: str) -> str:
     the peer gave no result, or one that is not the scene any more."""
     if peer in result.get("peer_failures", {}):
         return "failed"
-    registered = result["registration_ecc"].get(peer, 1.0)
-    if registered < USABLE_REGISTRATION:
-        return f"unusable (registration {registered:.2f})"
+    if peer in result.get("unusable_peers", {}):
+        return f"unusable (registration {result['unusable_peers'][peer]:.2f})"
     return "{}/{}".format(*good_regions(result["scores"], peer))
 
 
@@ -178,7 +177,8 @@ def main() -> int:
         ecc = result["registration_ecc"].get("focus-stack", float("nan"))
         rows.append((variant, counts, ecc))
         failures.update({f"{variant}, {peer}": said for peer, said in failed.items()})
-    given = f" --flexdof-args='{args.flexdof_args}' --label={args.label}" if args.label else ""
+    given = f" --variants='{args.variants}'" if chosen != list(VARIANTS) else ""
+    given += f" --flexdof-args='{args.flexdof_args}' --label={args.label}" if args.label else ""
     lines = [
         f"# {args.stack} as other cameras and shooting deliver it",
         "",
@@ -201,10 +201,6 @@ def main() -> int:
 
 
 PEERS = ("focus-stack", "focus-stack as shot", "enfuse")
-# a peer's result that registers to the aligned frames' composite below this ECC is not the
-# scene any more (misaligned pieces): the region measures cannot judge it (the real stacks'
-# peers register at 0.976-0.990)
-USABLE_REGISTRATION = 0.9
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -78,6 +78,10 @@ ENFUSE_ARGS = [
     "--contrast-window-size=9",
 ]
 AS_SHOT = ["--no-contrast", "--no-whitebalance"]  # focus-stack without its photometric match
+# a peer's result that registers to the aligned frames' composite below this ECC is not the
+# scene any more (pieces misaligned by its own alignment): it is reported, not scored (the
+# peers of the real stacks register at 0.976-0.990)
+USABLE_REGISTRATION = 0.9
 AS_SHOT_PEER = "focus-stack as shot"
 CROP_PX = 192
 PNG = [cv2.IMWRITE_PNG_COMPRESSION, 9]
@@ -352,11 +356,15 @@ def evaluate(
         "enfuse": run_enfuse(name, pattern, work),
         **(extra or {}),
     }
+    unusable = {}
     for peer, path in peers.items():
         if path is None or not Path(path).exists():
             continue
         image = read_srgb(Path(path))
         h, cc = register(image, composite)
+        if cc < USABLE_REGISTRATION:  # not the scene any more: neither scored nor covered
+            unusable[peer] = cc
+            continue
         warped, cover = warp(image, h, shape)
         methods[peer] = warped
         valid &= cover
@@ -380,22 +388,22 @@ def evaluate(
         if k in methods
     }
 
-    # crops: flexdof | focus-stack (as shot, or enfuse, where it gave no result) | the
-    # region's sharpest frame
-    shown = next((m for m in ("focus-stack", AS_SHOT_PEER, "enfuse") if m in methods), "flexdof")
-    peer = methods[shown]
+    # crops: flexdof | focus-stack (as shot, or enfuse, where it gave no result; no peer
+    # where none did) | the region's sharpest frame
+    shown = [m for m in ("focus-stack", AS_SHOT_PEER, "enfuse") if m in methods][:1]
+    peer = methods[shown[0]] if shown else flex
     corner, per_region = crop_windows(
         flex, peer, ref.valid, ref.regions, min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
     )
     size = min(CROP_PX, shape[0] // GRID, shape[1] // GRID)
     more = [k for k in (extra or {}) if k in methods]
-    names = ["flexdof", shown]
+    peers_shown = [methods[m] for m in shown]
     best = sharpest_in(frames, *corner, size)
     cv2.imwrite(
         str(out / f"{name}_maxdiff.png"),
         triple(
-            [flex, peer, frames[best], *(methods[k] for k in more)],
-            [*names, f"frame {best}", *more],
+            [flex, *peers_shown, frames[best], *(methods[k] for k in more)],
+            ["flexdof", *shown, f"frame {best}", *more],
             *corner,
             size,
         )[..., ::-1],
@@ -410,10 +418,10 @@ def evaluate(
             best = sharpest_in(frames, y0, x0, size)
             row.append(
                 triple(
-                    [flex, peer, frames[best], *(methods[k] for k in more)],
+                    [flex, *peers_shown, frames[best], *(methods[k] for k in more)],
                     [
                         f"{REGION_NAMES[r]}: flexdof",
-                        shown,
+                        *shown,
                         f"sharpest frame here: {best}",
                         *more,
                     ],
@@ -438,6 +446,7 @@ def evaluate(
         "sharpness_paired": paired,
         "psnr_against": fidelity,
         "peer_failures": peer_failures(name, work),
+        "unusable_peers": unusable,
         "seconds": time.perf_counter() - t0,
     }
 
@@ -522,6 +531,8 @@ def report(results: dict, args) -> str:
         ]
         for peer, said in res.get("peer_failures", {}).items():
             lines += [f"{peer} gave no result: {said}", ""]
+        for peer, cc in res.get("unusable_peers", {}).items():
+            lines += [f"{peer}'s result does not register to the frames (ECC {cc:.2f}).", ""]
         methods = [
             m
             for m in (
