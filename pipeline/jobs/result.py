@@ -143,8 +143,9 @@ def _common_box(sidecar: dict, shape: tuple[int, int], code: int):
 
 def _report_common_area(output, result, box, sidecar, options) -> np.ndarray:
     """Record the area every frame covers in the sidecar (``common_area``), warn where it is
-    small (the frames moved between shots: the rest is filled from their edges), and crop
-    the result to it with ``options.crop`` (``--crop``)."""
+    small (strong breathing, frames moved between shots: the rest is filled from their
+    edges; pcb10 86%, a loose hand 74%), and crop the result to it with ``options.crop``
+    (``--crop``)."""
     y, x, h, w = box
     fraction = h * w / (result.shape[0] * result.shape[1])
     area = {"x": x, "y": y, "width": w, "height": h, "fraction": round(fraction, 4)}
@@ -155,7 +156,8 @@ def _report_common_area(output, result, box, sidecar, options) -> np.ndarray:
         return np.ascontiguousarray(result[y : y + h, x : x + w])
     if fraction < COMMON_AREA_WARNING:
         log.warning(
-            "%s: every frame covers only %.0f%% of the result (frames moved between shots); "
+            "%s: every frame covers only %.0f%% of the result (focus breathing, or frames "
+            "moved between shots); "
             "outside %dx%d+%d+%d it is filled from the frames' edges: pass --crop, or crop "
             "it there (the sidecar's common_area)", output, 100 * fraction, w, h, x, y,
         )  # fmt: skip
