@@ -396,9 +396,9 @@ def estimate_alignment(
         shows; elsewhere their extra freedom fits the frames' blur differences
         (ECC's peak moves with them): on rendered breathing stacks the corners of
         a homography land 0.29-0.35 px from the true alignment, a similarity's
-        0.17-0.21 px, and on the real stacks of issue 13 a homography's corners
-        move by 2.2-12 px when the frames are cropped, a similarity's by 0.9-5.6
-        px (``tests/benchmarks/align_models.py``).
+        0.17-0.21 px, and on three real stacks of issue 13 (pcb7, pcb10, amber) a
+        homography's corners move by 2.2-12 px when the frames are cropped, a
+        similarity's by 0.9-5.6 px (``tests/benchmarks/align_models.py``).
     max_side_px : int
         Longest side of the matching copy (the full-resolution result is exact
         conjugation of the reduced estimate, not a rounding of it).

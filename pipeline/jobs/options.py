@@ -22,8 +22,8 @@ ALIGN_MODES = ("estimate", "analytic", "none")
 # and a turn: "similarity" fits both with 4 degrees of freedom. "homography" adds the 4 of a
 # tilt (keystone), which only a wide-angle lens turned between frames shows; on the
 # stacks of issue 13 they fit the blur differences instead: rendered breathing stacks' corners
-# 0.29-0.35 px from the truth against 0.17-0.21 px, real stacks' corners moving 2.2-12 px
-# (similarity 0.9-5.6 px) when the frames are cropped
+# 0.29-0.35 px from the truth against 0.17-0.21 px; pcb7's, pcb10's and amber's corners
+# moving 2.2-12 px (similarity 0.9-5.6 px) when the frames are cropped
 # (tests/benchmarks/results/align/align_models.md)
 ALIGN_MODELS = ("similarity", "affine", "homography")
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
