@@ -150,9 +150,8 @@ def _report_common_area(output, result, box, sidecar, options) -> np.ndarray:
     fraction = h * w / (result.shape[0] * result.shape[1])
     area = {"x": x, "y": y, "width": w, "height": h, "fraction": round(fraction, 4)}
     sidecar["common_area"] = area
-    crop = bool(getattr(options, "crop", False))
-    sidecar["cropped"] = crop
-    if crop:
+    sidecar["cropped"] = options.crop
+    if options.crop:
         return np.ascontiguousarray(result[y : y + h, x : x + w])
     if fraction < COMMON_AREA_WARNING:
         log.warning(
