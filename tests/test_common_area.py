@@ -213,3 +213,23 @@ def test_crop_writes_the_common_area_and_the_default_warns_of_it(tmp_path, sharp
     assert part.shape[:2] == (h, w)
     np.testing.assert_allclose(part, full[y : y + h, x : x + w], atol=2e-4)  # 16-bit codes
     assert json.loads(cropped.with_name(cropped.name + ".json").read_text())["cropped"] is True
+
+
+def test_crop_of_frames_that_share_no_area_warns_and_writes_it_uncropped(tmp_path, caplog):
+    """A result whose frames share no area (not reachable through the main job's
+    plausibility checks, so written directly): ``--crop`` says so and writes the image."""
+    from pipeline.jobs.options import StackOptions
+    from pipeline.jobs.result import write_result
+
+    image = np.full((40, 60, 3), 0.5, np.float32)
+    frames = [{"homography": np.eye(3).tolist()}, {"homography": shift(500.0, 0.0).tolist()}]
+    inputs = [tmp_path / "a.png", tmp_path / "b.png"]
+    for path in inputs:
+        Image.fromarray(np.zeros((40, 60, 3), np.uint8)).save(path)
+    out = tmp_path / "out.tif"
+    with caplog.at_level(logging.WARNING, logger="pipeline"):  # a CLI run may have set it
+        result = write_result(out, image, None, {"frames": frames}, {}, 0.0,
+                              StackOptions(crop=True), inputs)  # fmt: skip
+    assert "share no area" in caplog.text
+    assert result.image.shape == (40, 60, 3) and "common_area" not in result.sidecar
+    assert out.exists() and out.with_name("out.tif.json").exists()

@@ -245,6 +245,16 @@ def _flow(root: Path, extra: str = "", inputs_extra: str = "") -> Path:
     return path
 
 
+def test_every_workflow_option_is_a_job_option_of_that_name():
+    """plan_stacks passes the options table to StackOptions by name."""
+    import dataclasses
+
+    from pipeline.jobs.options import StackOptions
+    from pipeline.workflow import schema
+
+    assert set(schema._OPTION_KEYS) <= {f.name for f in dataclasses.fields(StackOptions)}
+
+
 def test_plan_order_options_and_defaults(tmp_path):
     root = _tree(tmp_path)
     stacks = wplan.plan_stacks(load_workflow(_flow(root)))

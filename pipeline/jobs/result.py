@@ -189,6 +189,8 @@ def write_result(output, result, kernel, sidecar, timings, start, options, input
     sidecar["orientation"] = code
     if box is not None:
         result = _report_common_area(output, result, box, sidecar, options)
+    elif options.crop:
+        log.warning("%s: --crop: the aligned frames share no area; written uncropped", output)
     exif, icc = upright_exif(read_exif(inputs[0])), read_icc(inputs[0])
     if exif is not None and output.suffix.lower() in (".jpg", ".jpeg") and not fits_jpeg(exif):
         log.warning(

@@ -124,21 +124,9 @@ def plan_stacks(
     for index, spec in enumerate(workflow.inputs):
         where = f"{workflow.path}: [[inputs]] #{index + 1}"
         merged = {**workflow.options, **spec.options}
-        options = StackOptions(
-            lens=merged.get("lens"),
-            method=merged.get("method", "wiener"),
-            align=merged.get("align", "estimate"),
-            align_model=merged.get("align_model", "similarity"),
-            encoding=workflow.encoding,
-            blur_span_px=merged.get("blur_span_px"),
-            white=merged.get("white"),
-            tile_px=merged.get("tile_px", 1024),
-            align_max_side_px=merged.get("align_max_side_px", 768),
-            frame_guard=merged.get("frame_guard", False),
-            frame_range=merged.get("frame_range", True),
-            match_exposure=merged.get("match_exposure", False),
-            crop=merged.get("crop", False),
-        )
+        # every options key of a workflow file is the StackOptions field of that name
+        # (pipeline.workflow.schema): the job's defaults fill the rest
+        options = StackOptions(encoding=workflow.encoding, **merged)
         if spec.directories is not None:
             pattern = str(base / spec.directories)
             excluded = _excluded_outputs(pattern, outputs)
