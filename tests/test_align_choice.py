@@ -72,13 +72,14 @@ def test_a_stack_without_breathing_keeps_the_identity(tmp_path, sharp, given):
     none = _run(folder, tmp_path, "none")
     assert psnr(chosen.image, sharp) == pytest.approx(psnr(none.image, sharp), abs=0.01)
     # what ECC alone gives: its invented breathing costs the result. The similarity fits
-    # less of the blur differences than a homography (measured: 0.23% against over 1%)
+    # less of the blur differences than a homography (measured: 0.23% against 0.42%, both
+    # read at the image centre)
     frames = [read_frame(f) for f in sorted(folder.glob("*.tif"))]
     invented = [
         max(abs(a.scale - 1.0) for a in align.estimate_alignment(frames, model=model))
         for model in ("similarity", "homography")
     ]
-    assert 0.001 < invented[0] < invented[1] and invented[1] > 0.01
+    assert 0.001 < invented[0] < invented[1]
 
 
 @pytest.mark.parametrize("given", ["lens", "positions", "nothing"])
@@ -191,11 +192,29 @@ def test_a_rendered_breathing_stack_is_aligned_within_a_fifth_of_a_pixel(tmp_pat
     assert default < worst_corner("homography")
 
 
-@pytest.mark.parametrize("model", ["similarity", "affine", "homography"])
-def test_the_model_is_the_flag_and_is_recorded(tmp_path, sharp, model):
+def _similar_after_perspective(h: np.ndarray, shape) -> bool:
+    """In coordinates centred on the image, ``h = S P`` with ``P`` its perspective row alone:
+    is ``S`` a turned scaling (what the keystone model keeps)?"""
+    c = np.array([[1.0, 0, (shape[1] - 1) / 2], [0, 1, (shape[0] - 1) / 2], [0, 0, 1]])
+    centred = np.linalg.inv(c) @ h @ c
+    p = np.eye(3)
+    p[2, :2] = centred[2, :2] / centred[2, 2]
+    s = centred @ np.linalg.inv(p)
+    s = s / s[2, 2]
+    return bool(np.isclose(s[0, 0], s[1, 1]) and np.isclose(s[0, 1], -s[1, 0]))
+
+
+@pytest.mark.parametrize(
+    "model, fitted",
+    [("auto", "similarity"), ("similarity", "similarity"), ("keystone", "keystone"),
+     ("affine", "affine"), ("homography", "homography")],
+)  # fmt: skip
+def test_the_model_is_the_flag_and_is_recorded(tmp_path, sharp, model, fitted):
     """``--align-model`` reaches the estimate: a similarity's linear part is a turned
-    scaling (``[[a, -b], [b, a]]``), an affine's has no perspective row, a homography's may;
-    the sidecar says which (and null where nothing was estimated)."""
+    scaling (``[[a, -b], [b, a]]``), an affine's has no perspective row, a keystone's is a
+    turned scaling once its perspective row is factored out, a homography's none of these;
+    the sidecar says which model was fitted ("auto": the similarity, as nothing was turned)
+    and null where nothing was estimated."""
     import json
 
     from pipeline.cli import main
@@ -210,14 +229,20 @@ def test_the_model_is_the_flag_and_is_recorded(tmp_path, sharp, model):
     out = tmp_path / f"{model}.tif"
     assert main(["-q", "stack", str(folder), "-o", str(out), "--align-model", model]) == 0
     sidecar = json.loads(out.with_name(out.name + ".json").read_text())
-    assert sidecar["align_model"] == model
+    assert sidecar["align_model"] == fitted
     homographies = [np.array(f["homography"]) for f in sidecar["frames"]]
     moved = [h for h in homographies if not np.allclose(h, np.eye(3))]
     assert moved
+    shape = read_frame(sorted(folder.glob("frame_*.tif"))[0]).shape[:2]
     for h in moved:
         turned_scaling = np.isclose(h[0, 0], h[1, 1]) and np.isclose(h[0, 1], -h[1, 0])
-        assert turned_scaling == (model == "similarity")
-        assert np.allclose(h[2, :2], 0) == (model != "homography")
+        assert turned_scaling == (fitted == "similarity")
+        assert np.allclose(h[2, :2], 0) == (fitted in ("similarity", "affine"))
+    # the reference's neighbours hold one matched pair each (the others compose several,
+    # and keystones do not compose into keystones)
+    ref = len(homographies) // 2
+    for h in (homographies[ref - 1], homographies[ref + 1]):
+        assert _similar_after_perspective(h, shape) == (fitted in ("similarity", "keystone"))
     none = tmp_path / "none.tif"
     assert main(["-q", "stack", str(folder), "-o", str(none), "--align", "none"]) == 0
     assert json.loads(none.with_name(none.name + ".json").read_text())["align_model"] is None

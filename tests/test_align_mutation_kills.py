@@ -563,6 +563,8 @@ class Stubs:
         monkeypatch.setattr(align, "_features", lambda img: self.frame(img))
         monkeypatch.setattr(align, "_feature_warp", self.feature_warp)
         monkeypatch.setattr(align, "_correlation", self.correlation)
+        # the pair matching under test; "auto"'s turn check is tested in test_align.py
+        monkeypatch.setattr(align, "_turn_found", lambda *args: "")
 
     @staticmethod
     def frame(img) -> int:

@@ -30,7 +30,7 @@ from pathlib import Path
 CLI_METHODS = ("wiener", "rl", "multiframe")
 SINGLE_IMAGE_METHODS = ("wiener", "rl")
 ALIGN_MODES = ("estimate", "analytic", "none")
-ALIGN_MODELS = ("similarity", "affine", "homography")
+ALIGN_MODELS = ("auto", "similarity", "keystone", "affine", "homography")
 ENCODINGS = ("srgb16", "linear16", "float32", "srgb8")
 DEFAULT_LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 
@@ -194,10 +194,11 @@ def add_alignment(parser: argparse.ArgumentParser, *, defaults: bool = True) -> 
     parser.add_argument(
         "--align-model",
         choices=ALIGN_MODELS,
-        default="similarity" if defaults else None,
-        help="what an estimated alignment fits: a shift, turn and scaling (focus breathing, "
-        "a rail, a steady hand), or also shear (affine) or a tilt's keystone (homography: "
-        "a wide-angle lens turned between frames)",
+        default="auto" if defaults else None,
+        help="what an estimated alignment fits: a shift, turn and scaling (similarity: focus "
+        "breathing, a rail, a steady hand), also the keystone of a wide-angle lens turned "
+        "between frames (keystone), shear (affine) or all of these (homography); auto: the "
+        "similarity, or the keystone where frames show one",
     )
 
 

@@ -13,7 +13,8 @@ Pixel coordinates are OpenCV's: ``(x, y) = (column, row)`` with pixel centres at
 integer coordinates. A homography maps homogeneous column vectors,
 ``[x', y', w']^T = H [x, y, 1]^T``, and is stored normalised to ``H[2, 2] = 1``.
 ``Alignment.scale`` is the frame's magnification relative to the reference,
-``p_i / p_ref`` for a detector-moving focus, i.e. ``1 / scale_of(H)``.
+``p_i / p_ref`` for a detector-moving focus, i.e. ``1 / scale_of(H, centre)`` (read at
+the image centre).
 """
 
 from __future__ import annotations
@@ -42,11 +43,25 @@ __all__ = [
     "warp",
 ]
 
+# The ECC motion each model is fitted as, then projected onto the model (``_project``).
+# "auto" is not a motion: a similarity, or a keystone for the whole stack (``_turn_found``).
 _MODELS = {
     "homography": cv2.MOTION_HOMOGRAPHY,
     "affine": cv2.MOTION_AFFINE,
     "similarity": cv2.MOTION_AFFINE,  # ECC has no similarity model: fit affine, then project
+    "keystone": cv2.MOTION_HOMOGRAPHY,  # a similarity and the two terms of a turn's keystone
 }
+AUTO_MODEL = "auto"
+_PERSPECTIVE_MODELS = ("homography", "keystone")
+# "auto" fits the keystone for the whole stack where one neighbour pair shows a turn
+# (``_turn_found``): refining its similarity as a keystone takes away this share of its
+# decorrelation (1 - ECC correlation, half resolution; the four real stacks: at most 0.019;
+# pcb7's copies seen through a 16 mm lens on APS-C turned by up to 0.25 / 0.5 / 1 degree:
+# 0.11 / 0.28 / 0.58), moves a corner by this many px of the matching copy (turned pairs that
+# pass the share: 1.1-4.4) and points its perspective row as a turn does (the cosine)
+_TURN_SHARE = 0.05
+_TURN_CORNER_PX = 0.5
+_TURN_ALIGNMENT = 0.7
 _METHODS = ("auto", "ecc", "features")
 _INTERPOLATIONS = {
     "linear": cv2.INTER_LINEAR,
@@ -74,7 +89,8 @@ class Alignment:
         Maps the frame's full-resolution pixel coordinates to the reference's
         (``H[2, 2] = 1``); pass it to :func:`warp`.
     scale : float
-        The frame's magnification relative to the reference, ``1 / scale_of(H)``
+        The frame's magnification relative to the reference at the image centre,
+        ``1 / scale_of(H, centre)``
         (``p_i / p_ref`` for a detector-moving focus, Fig. 1).
     method : str
         ``"reference"``, ``"ecc"``, ``"features"``, ``"features+ecc"``, ``"analytic"``
@@ -86,6 +102,9 @@ class Alignment:
     correlation : float or None
         ECC correlation coefficient of the frame with its anchor on their overlap
         at the matching resolution (None when not measured).
+    model : str or None
+        The motion model the estimate fitted (what ``model="auto"`` chose); None
+        where nothing was estimated (analytic or identity transforms).
     """
 
     homography: np.ndarray
@@ -94,6 +113,7 @@ class Alignment:
     ok: bool = True
     message: str = ""
     correlation: float | None = None
+    model: str | None = None
 
 
 class _EstimationError(Exception):
@@ -118,14 +138,30 @@ def _as_homography(h: np.ndarray, name: str = "homography") -> np.ndarray:
     return m
 
 
-def scale_of(h: np.ndarray) -> float:
-    """Linear scale factor of the map ``h``: ``sqrt(|det h[:2, :2]|)`` with ``h[2, 2] = 1``.
+def scale_of(h: np.ndarray, at: tuple[float, float] | None = None) -> float:
+    """Linear scale factor of the map ``h``: ``sqrt(|det J|)`` of its Jacobian ``J``.
+
+    Without ``at``, ``J = h[:2, :2]`` (``h[2, 2] = 1``): the map's scale everywhere when
+    it is affine (a similarity, an affine); with perspective terms it is no point's scale.
+    With ``at = (x, y)``, the Jacobian at that point, ``J = (h[:2, :2] - h(x)
+    h[2, :2]) / w`` with ``w = h[2, :2] . x + 1``: a keystone magnifies one side of the
+    frame more than the other, so a turned frame's magnification is read at the image
+    centre. (Read from ``h[:2, :2]``, pcb7's frames turned by up to 0.5 degree as through a
+    16 mm lens read scales out of their focus order, 1.0113, 1.0063, 1.0068, 1.0, 0.978,
+    and the sweep weights were lost; at the centre they read 1.0216, 1.0109, 1.0059, 1.0,
+    0.9923, within 0.0002 of the frames not turned.)
 
     For a pure scaling by ``s`` about any point this is ``s``. The magnification
-    of a frame relative to the reference is ``1 / scale_of(alignment.homography)``.
+    of a frame relative to the reference is ``1 / scale_of(alignment.homography, centre)``.
     """
     m = _as_homography(h)
-    return float(math.sqrt(abs(np.linalg.det(m[:2, :2]))))
+    jacobian = m[:2, :2]
+    if at is not None:
+        x = np.array([at[0], at[1], 1.0])
+        w = float(m[2] @ x)
+        mapped = (m[:2] @ x) / w
+        jacobian = (m[:2, :2] - np.outer(mapped, m[2, :2])) / w
+    return float(math.sqrt(abs(np.linalg.det(jacobian))))
 
 
 def compose(*homographies: np.ndarray) -> np.ndarray:
@@ -263,10 +299,28 @@ def _project(w: np.ndarray, model: str, shape: tuple[int, int]) -> np.ndarray:
 
     Similarity: the rotation+scaling nearest (Frobenius norm) to the linear
     part, with the translation chosen so the image centre maps as before.
+
+    Keystone: in coordinates centred on the image, ``m = S P`` with ``P`` the
+    perspective row alone (``[[1, 0, 0], [0, 1, 0], [p1, p2, 1]]``) and ``S``
+    affine; ``S`` is projected onto a similarity as above. A camera turned by
+    ``theta`` about an axis through its lens is ``K R K^-1``: in centred
+    coordinates its ``S`` is a similarity up to a scaling of one axis by
+    ``cos(theta)`` (1.5e-4 at 1 degree), so this model holds focus breathing, a
+    shift, a roll and a turn's keystone with 6 degrees of freedom, without the
+    homography's shear and unequal scaling, which fit blur differences.
     """
     m = w / w[2, 2]
     if model == "homography":
         return m
+    if model == "keystone":
+        c = np.array([[1.0, 0, (shape[1] - 1) / 2], [0, 1.0, (shape[0] - 1) / 2], [0, 0, 1.0]])
+        centred = np.linalg.inv(c) @ m @ c
+        centred = centred / centred[2, 2]
+        p = np.eye(3)
+        p[2, :2] = centred[2, :2]
+        s = centred @ np.linalg.inv(p)
+        out = c @ _project(s / s[2, 2], "similarity", (1, 1)) @ p @ np.linalg.inv(c)
+        return out / out[2, 2]
     out = np.eye(3)
     out[:2] = m[:2]
     if model == "similarity":
@@ -300,7 +354,7 @@ def _ecc(
             w = rescale_homography(w, template[level - 1].shape, t.shape)
         iterations = 100 if level == 0 else (12 if level == len(template) - 1 else 30)
         criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-5)
-        warp32 = (w if model == "homography" else w[:2]).astype(np.float32)
+        warp32 = (w if model in _PERSPECTIVE_MODELS else w[:2]).astype(np.float32)
         try:
             cc, warp32 = cv2.findTransformECC(
                 t, m, warp32, _MODELS[model], criteria, None, _ECC_GAUSS_SIZE
@@ -334,7 +388,7 @@ def _feature_warp(fa: tuple, fb: tuple, model: str) -> np.ndarray:
     src = np.float32([ka[g.queryIdx].pt for g in good])
     dst = np.float32([kb[g.trainIdx].pt for g in good])
     try:
-        if model == "homography":
+        if model in _PERSPECTIVE_MODELS:
             h, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 1.5)
         elif model == "affine":
             h, inliers = cv2.estimateAffine2D(src, dst, ransacReprojThreshold=1.5)
@@ -369,7 +423,7 @@ def estimate_alignment(
     frames: Sequence[np.ndarray | Callable[[], np.ndarray]],
     *,
     reference: int | None = None,
-    model: str = "similarity",
+    model: str = AUTO_MODEL,
     max_side_px: int = 768,
     chain: bool = True,
     method: str = "auto",
@@ -388,17 +442,26 @@ def estimate_alignment(
         reduced grey copy of each frame is kept.
     reference : int, optional
         Index of the reference frame; default the middle one, ``len(frames) // 2``.
-    model : {"similarity", "affine", "homography"}
+    model : {"auto", "similarity", "keystone", "affine", "homography"}
         Motion model. Focus breathing is a scaling about the optical centre
         (Fig. 1), a rail's or a steady hand's motion a shift and a turn: a
-        similarity (4 degrees of freedom). "affine" adds shear, "homography" also
-        a tilt's keystone, which only a wide-angle lens turned between frames
-        shows; elsewhere their extra freedom fits the frames' blur differences
-        (ECC's peak moves with them): on rendered breathing stacks the corners of
-        a homography land 0.29-0.35 px from the true alignment, a similarity's
-        0.17-0.21 px, and on three real stacks of issue 13 (pcb7, pcb10, amber) a
-        homography's corners move by 2.2-12 px when the frames are cropped, a
-        similarity's by 0.9-5.6 px (``tests/benchmarks/align_models.py``).
+        similarity (4 degrees of freedom). "keystone" adds the two perspective
+        terms of a wide-angle lens turned between frames (see ``_project``),
+        "affine" adds shear and unequal scaling, "homography" all of these.
+        Where the stack has no keystone their extra freedom fits the frames' blur
+        differences (ECC's peak moves with them): on rendered breathing stacks a
+        similarity's corners land 0.17-0.21 px from the true alignment, a
+        keystone's 0.27-0.35 px, a homography's 0.29-0.35 px; on pcb7, pcb10 and
+        amber a similarity's corners move by 0.9-5.6 px when the frames are
+        cropped, a homography's by 2.2-12 px. On pcb7's copies seen through a
+        16 mm lens turned by up to 0.25-1 degree, the keystone lands 0.67-0.83 px
+        from the truth, the homography 1.15-1.25 px, the similarity 0.93-3.62 px
+        (``tests/benchmarks/align_models.py``). "auto" (the default) fits the
+        similarity and, where a neighbour pair shows a turn's keystone
+        (``_turn_found``), the keystone for the whole stack; it costs one more
+        half-resolution ECC per pair (0.04 s on the four real stacks' 768 px
+        copies), and on stacks that were not turned returns the similarity's
+        result unchanged. ``Alignment.model`` says which model was fitted.
     max_side_px : int
         Longest side of the matching copy (the full-resolution result is exact
         conjugation of the reduced estimate, not a rounding of it).
@@ -436,8 +499,8 @@ def estimate_alignment(
     n = len(frames)
     if n == 0:
         raise InputError("frames is empty; pass at least one frame")
-    if model not in _MODELS:
-        raise InputError(f"model must be one of {sorted(_MODELS)}, got {model!r}")
+    if model not in (*_MODELS, AUTO_MODEL):
+        raise InputError(f"model must be one of {sorted([*_MODELS, AUTO_MODEL])}, got {model!r}")
     if method not in _METHODS:
         raise InputError(f"method must be one of {list(_METHODS)}, got {method!r}")
     if not isinstance(max_side_px, int | np.integer) or max_side_px < 2 * _COARSEST_SIDE_PX:
@@ -472,6 +535,7 @@ def estimate_alignment(
     assert full_shape is not None
     reduced = pyramids[0][-1].shape
 
+    centre = ((full_shape[1] - 1) / 2, (full_shape[0] - 1) / 2)  # where scales are read
     features: dict[int, tuple] = {}
 
     def feats(k: int) -> tuple:
@@ -479,7 +543,7 @@ def estimate_alignment(
             features[k] = _features(pyramids[k][-1])
         return features[k]
 
-    def match(i: int, j: int) -> tuple[np.ndarray, float, str]:
+    def match(i: int, j: int, fit: str) -> tuple[np.ndarray, float, str]:
         """Warp frame i -> frame j (reduced coordinates), its correlation and the method."""
         ti, tj = pyramids[i], pyramids[j]
         if _is_textureless(ti[-1]):
@@ -490,7 +554,7 @@ def estimate_alignment(
         reasons = []
         if method in ("auto", "ecc"):
             try:
-                w, cc = _ecc(ti, tj, np.eye(3), model)
+                w, cc = _ecc(ti, tj, np.eye(3), fit)
                 candidates.append((cc, w, "ecc"))
             except _EstimationError as err:
                 reasons.append(str(err))
@@ -502,9 +566,9 @@ def estimate_alignment(
         ]
         if method == "features" or (method == "auto" and not confident):
             try:
-                w = _project(_feature_warp(feats(i), feats(j), model), model, reduced)
+                w = _project(_feature_warp(feats(i), feats(j), fit), fit, reduced)
                 candidates.append((_correlation(ti[-1], tj[-1], w), w, "features"))
-                w2, cc2 = _ecc(ti, tj, w, model, start_level=len(ti) - 1)
+                w2, cc2 = _ecc(ti, tj, w, fit, start_level=len(ti) - 1)
                 candidates.append((cc2, w2, "features+ecc"))
             except _EstimationError as err:
                 reasons.append(str(err))
@@ -523,18 +587,21 @@ def estimate_alignment(
     expected = [
         (i, side[k - 1] if chain and k else ref) for side in sides for k, i in enumerate(side)
     ]
-    pool = ThreadPoolExecutor(max(1, min(workers, len(expected))), thread_name_prefix="align")
-    ahead = {pair: pool.submit(match, *pair) for pair in expected}
 
-    out: list[Alignment | None] = [None] * n
-    out[ref] = Alignment(np.eye(3), 1.0, "reference", True, "", 1.0)
-    with pool:
+    def solve(fit: str, pool: ThreadPoolExecutor) -> tuple[list[Alignment], dict]:
+        """Every frame's alignment under the model ``fit``, and the pairs' reduced warps."""
+        ahead = {pair: pool.submit(match, *pair, fit) for pair in expected}
+        out: list[Alignment | None] = [None] * n
+        out[ref] = Alignment(np.eye(3), 1.0, "reference", True, "", 1.0, fit)
+        pairs: dict[tuple[int, int], np.ndarray] = {}
         for side in sides:
             anchor = ref
             for i in side:
                 try:
                     pending = ahead.get((i, anchor))
-                    w, cc, how = pending.result() if pending is not None else match(i, anchor)
+                    w, cc, how = (
+                        pending.result() if pending is not None else match(i, anchor, fit)
+                    )
                     h = compose(out[anchor].homography, rescale_homography(w, reduced, full_shape))
                     why = _implausible(h, full_shape)
                     if why:
@@ -550,12 +617,84 @@ def estimate_alignment(
                         hint,
                     )
                     h = _as_homography(base.homography)
-                    out[i] = Alignment(h, 1.0 / scale_of(h), "fallback", False, str(err), None)
+                    out[i] = Alignment(
+                        h, 1.0 / scale_of(h, centre), "fallback", False, str(err), None, fit
+                    )
                     continue
-                out[i] = Alignment(h, 1.0 / scale_of(h), how, True, "", cc)
+                out[i] = Alignment(h, 1.0 / scale_of(h, centre), how, True, "", cc, fit)
+                pairs[(i, anchor)] = w
                 if chain:
                     anchor = i
-    return out  # type: ignore[return-value]
+        return out, pairs  # type: ignore[return-value]
+
+    with ThreadPoolExecutor(
+        max(1, min(workers, len(expected))), thread_name_prefix="align"
+    ) as pool:
+        out, pairs = solve("similarity" if model == AUTO_MODEL else model, pool)
+        if model == AUTO_MODEL:
+            turn = _turn_found(pyramids, pairs, pool)
+            if turn:
+                logger.info("alignment: %s; fitting the keystone model", turn)
+                out, _ = solve("keystone", pool)
+    return out
+
+
+def _turn_evidence(
+    template: list[np.ndarray], image: list[np.ndarray], w: np.ndarray
+) -> tuple[float, float, float]:
+    """What refining a pair's similarity ``w`` (finest-level coordinates) as a keystone at
+    the half-resolution level shows: the share of the decorrelation left by ``w`` it takes
+    away (both correlations by ``_correlation``), how far it moves a corner (px of the
+    finest level) and the cosine between its perspective row ``-p`` and its shift ``t`` in
+    coordinates centred on the image (a turn's: ``p = -t / f^2``, cosine 1). Zeros where
+    the refinement fails."""
+    level = max(len(template) - 2, 0)
+    rows, cols = template[level].shape
+    w = rescale_homography(w, template[-1].shape, (rows, cols))
+    before = _correlation(template[level], image[level], w)
+    try:
+        k, _ = _ecc(template[: level + 1], image[: level + 1], w, "keystone", start_level=level)
+    except _EstimationError:
+        return 0.0, 0.0, 0.0
+    if _implausible(k, (rows, cols)) or before >= 1.0:
+        return 0.0, 0.0, 0.0
+    share = (_correlation(template[level], image[level], k) - before) / (1.0 - before)
+    corners = np.array([[0, cols - 1, 0, cols - 1], [0, 0, rows - 1, rows - 1], [1, 1, 1.0, 1]])
+    a, b = k @ corners, w @ corners
+    moved = float(np.hypot(*(a[:2] / a[2] - b[:2] / b[2])).max())
+    c = np.array([[1.0, 0, (cols - 1) / 2], [0, 1.0, (rows - 1) / 2], [0, 0, 1.0]])
+    centred = np.linalg.inv(c) @ k @ c
+    p, t = centred[2, :2] / centred[2, 2], centred[:2, 2] / centred[2, 2]
+    cosine = float(-(p @ t) / max(float(np.linalg.norm(p) * np.linalg.norm(t)), 1e-300))
+    return share, moved * template[-1].shape[0] / rows, cosine
+
+
+def _turn_found(
+    pyramids: list[list[np.ndarray]], pairs: dict[tuple[int, int], np.ndarray], pool
+) -> str:
+    """Which neighbour pair shows a turn's keystone ('' where none does), for "auto".
+
+    A turn is seen where refining the pair's similarity as a keystone
+    (:func:`_turn_evidence`) takes away ``_TURN_SHARE`` or more of its decorrelation, moves
+    a corner by ``_TURN_CORNER_PX`` or more and points its perspective row as a turn's
+    (cosine ``_TURN_ALIGNMENT`` or more). The blur differences of stacks that were not
+    turned raise the share as well (rendered breathing stacks, real stacks cropped: up to
+    0.17), but with the perspective row in any direction (cosines -0.98..-0.06 where the
+    share and the corner pass); turned pairs that pass them have cosines of 0.80-1.0
+    (``tests/benchmarks/align_models.py``).
+    """
+
+    def evidence(pair: tuple[int, int]) -> tuple[float, float, float]:
+        return _turn_evidence(pyramids[pair[0]], pyramids[pair[1]], pairs[pair])
+
+    for (i, j), (share, moved, cosine) in zip(pairs, pool.map(evidence, pairs)):
+        if share >= _TURN_SHARE and moved >= _TURN_CORNER_PX and cosine >= _TURN_ALIGNMENT:
+            return (
+                f"frames {i} and {j} differ by a turn's keystone (it takes away {share:.0%} of "
+                f"the decorrelation a similarity leaves and moves a corner by {moved:.1f} px "
+                f"of the matching copy)"
+            )
+    return ""
 
 
 def analytic_alignment(

@@ -19,13 +19,14 @@ METHODS = ("wiener", "rl", "sparse", "multiframe")
 ALIGN_MODES = ("estimate", "analytic", "none")
 # --align-model: the motion an estimated alignment may fit (pipeline.core.align). A focus
 # ring's breathing is a scaling about the optical centre, a hand's or a rail's motion a shift
-# and a turn: "similarity" fits both with 4 degrees of freedom. "homography" adds the 4 of a
-# tilt (keystone), which only a wide-angle lens turned between frames shows; on the
-# stacks of issue 13 they fit the blur differences instead: rendered breathing stacks' corners
-# 0.29-0.35 px from the truth against 0.17-0.21 px; pcb7's, pcb10's and amber's corners
-# moving 2.2-12 px (similarity 0.9-5.6 px) when the frames are cropped
+# and a turn: "similarity" fits both with 4 degrees of freedom. "keystone" adds the 2 terms of
+# a wide-angle lens turned between frames, "homography" also shear and unequal scaling; on the
+# stacks of issue 13 these fit the blur differences instead: rendered breathing stacks' corners
+# 0.27-0.35 px from the truth against 0.17-0.21 px; pcb7's, pcb10's and amber's corners
+# moving 2.2-12 px (similarity 0.9-5.6 px) when the frames are cropped. "auto" fits the
+# similarity, and the keystone where a pair of frames shows a turn's
 # (tests/benchmarks/results/align/align_models.md)
-ALIGN_MODELS = ("similarity", "affine", "homography")
+ALIGN_MODELS = ("auto", "similarity", "keystone", "affine", "homography")
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
 
 
@@ -36,7 +37,7 @@ class StackOptions:
     lens: str | None = None
     method: str = "wiener"
     align: str = "estimate"
-    align_model: str = "similarity"
+    align_model: str = "auto"
     encoding: str | None = None
     blur_span_px: float | None = None
     tile_px: int = 1024

@@ -590,7 +590,7 @@ def stack_sidecar(aligned: AlignedStack, weights: np.ndarray, method: str, optio
         "lens": (lens.source or lens.name) if lens else None,
         "method": method,
         "align": options.align,
-        "align_model": options.align_model if options.align == "estimate" else None,
+        "align_model": aligned.alignments[0].model if options.align == "estimate" else None,
         "positions_source": aligned.positions_source,
         "frames": frames_meta,
         "partial_stack": aligned.stack.partial,
@@ -979,6 +979,8 @@ def _keep_if_explained(
         estimated,
     )
     return [
-        align.Alignment(np.eye(3), 1.0, "identity (the estimate explained no more)")
-        for _ in alignments
+        align.Alignment(
+            np.eye(3), 1.0, "identity (the estimate explained no more)", model=a.model
+        )
+        for a in alignments
     ]
