@@ -20,6 +20,11 @@ kept), so that they differ only in what the variant changes:
   3 degrees. (A control and variant reduced to half size were tried: the region measures'
   windows and scales are in pixels, and at half size their flat mask took pcb7's fine board
   texture for flat.)
+* ``wide-angle turned`` and its control ``cropped as turned``: every frame seen as a camera
+  with a 16 mm lens on APS-C (82 degrees across the diagonal) sees it when turned by a
+  seeded angle of up to 0.5 degree about each of its three axes (``K R K^-1``: a shift, a
+  roll and a keystone), cropped alike: a handheld wide-angle stack, the case for
+  ``--align-model keystone`` (and what "auto" must find).
 
 Each variant is scored by ``real_stack_regions.py`` against focus-stack made from the same
 files (``--focus-stack``; its default matches each frame's contrast and white balance, its
@@ -51,6 +56,8 @@ HERE = Path(__file__).resolve().parent
 # (largest shift as a share of the frame's side, largest turn in degrees) of a hand's move
 STEADY_HAND = (0.015, 0.5)
 LOOSE_HAND = (0.06, 3.0)
+# (largest turn about each axis in degrees, half the diagonal field of view in degrees)
+WIDE_TURN = (0.5, 41.0)
 # variant -> (EXIF orientation, per-frame gain in linear light as a function of n frames,
 # how the frames are moved: None, or (how, hand) with how "crop" (cropped as that hand's
 # moves would crop them, not moved) or "move" (moved and cropped))
@@ -63,6 +70,8 @@ VARIANTS = {
     "handheld": (1, lambda n: np.ones(n), ("move", STEADY_HAND)),
     "cropped more": (1, lambda n: np.ones(n), ("crop", LOOSE_HAND)),
     "loose hand": (1, lambda n: np.ones(n), ("move", LOOSE_HAND)),
+    "cropped as turned": (1, lambda n: np.ones(n), ("crop", WIDE_TURN)),
+    "wide-angle turned": (1, lambda n: np.ones(n), ("move", WIDE_TURN)),
 }
 
 
@@ -95,6 +104,28 @@ def hand_motions(
     return motions, (margin, margin, rows - 2 * margin, cols - 2 * margin)
 
 
+def turn_motions(
+    n: int, shape: tuple[int, int], turn: tuple[float, float], seed: int = 13
+) -> tuple[list, tuple]:
+    """Seeded 3x3 maps ``K R K^-1`` of ``n`` frames of ``shape`` seen by a camera whose
+    diagonal field is ``2 * turn[1]`` degrees, turned by up to ``turn[0]`` degrees about each
+    axis, and the crop ``(y0, x0, h, w)`` inside what every turned frame covers."""
+    rows, cols = shape
+    focal = 0.5 * np.hypot(rows, cols) / np.tan(np.radians(turn[1]))
+    k = np.array([[focal, 0, (cols - 1) / 2], [0, focal, (rows - 1) / 2], [0, 0, 1.0]])
+    rng = np.random.default_rng(seed)
+    corners = np.array([[0, cols - 1, 0, cols - 1], [0, 0, rows - 1, rows - 1], [1, 1, 1, 1.0]])
+    margin = 0
+    motions = []
+    for _ in range(n):
+        rotation = cv2.Rodrigues(np.radians(rng.uniform(-turn[0], turn[0], 3)))[0]
+        h = k @ rotation @ np.linalg.inv(k)
+        motions.append(h / h[2, 2])
+        moved = h @ corners
+        margin = max(margin, int(np.ceil(np.abs(moved[:2] / moved[2] - corners[:2]).max())) + 2)
+    return motions, (margin, margin, rows - 2 * margin, cols - 2 * margin)
+
+
 def make_variant(
     frames: list[Path], folder: Path, orientation: int, gains, motion: tuple | None
 ) -> None:
@@ -110,10 +141,12 @@ def make_variant(
         linear = np.clip(_srgb_to_linear(codes) * gain, 0, 1).astype(np.float32)
         if motion is not None:
             how, hand = motion
-            motions, (y0, x0, h, w) = hand_motions(len(frames), linear.shape[:2], hand)
+            moves = turn_motions if hand == WIDE_TURN else hand_motions
+            motions, (y0, x0, h, w) = moves(len(frames), linear.shape[:2], hand)
             if how == "move":
                 size = (linear.shape[1], linear.shape[0])
-                linear = cv2.warpAffine(linear, motions[k], size, flags=cv2.INTER_LANCZOS4)
+                warp = cv2.warpPerspective if motions[k].shape == (3, 3) else cv2.warpAffine
+                linear = warp(linear, motions[k], size, flags=cv2.INTER_LANCZOS4)
             linear = np.clip(linear[y0 : y0 + h, x0 : x0 + w], 0, 1)
         out = np.round(_linear_to_srgb(linear) * 255).astype(np.uint8)
         Image.fromarray(out).save(folder / f"{path.stem}.jpg", quality=95, exif=exif)
