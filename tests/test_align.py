@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import itertools
 import logging
 import math
+import re
 from pathlib import Path
 
 import cv2
@@ -686,6 +688,24 @@ def test_the_keystone_model_is_not_a_plain_projection():
     assert abs(kept[2, 0]) > 1e-5 and abs(kept[2, 1]) < 1e-12
 
 
+@contextlib.contextmanager
+def _logged():
+    """The records the alignment logs at INFO and above (inside a hypothesis test, where
+    pytest's caplog fixture cannot be reset between examples)."""
+    records: list[logging.LogRecord] = []
+    handler = logging.Handler(logging.INFO)
+    handler.emit = records.append
+    log = logging.getLogger("pipeline.core.align")
+    level = log.level
+    log.addHandler(handler)
+    log.setLevel(logging.INFO)
+    try:
+        yield records
+    finally:
+        log.removeHandler(handler)
+        log.setLevel(level)
+
+
 def _turned_copies(previews, seed: int, largest_deg: float, shift: float = 0.0):
     """``previews`` each seen through a wide-angle lens turned by up to ``largest_deg``
     about both axes (and shifted by up to ``shift`` of the side), cropped alike; the moves
@@ -717,8 +737,12 @@ def test_a_wide_angle_lens_turned_is_found_and_fitted(pcb7_previews, seed):
     previews, still = pcb7_previews
     moved, moves, crop = _turned_copies(previews, seed, 0.5, shift=0.01)
     ref = len(previews) // 2
-    found = estimate_alignment(moved)
+    names = [f"pcb_{i:03d}.jpg" for i in range(len(moved))]
+    with _logged() as records:
+        found = estimate_alignment(moved, names=names)
     assert {a.model for a in found} == {"keystone"}
+    said = [r.getMessage() for r in records if "keystone" in r.getMessage()]
+    assert len(said) == 1 and re.search(r"pcb_00\d\.jpg and pcb_00\d\.jpg differ", said[0])
     for i, a in enumerate(found):
         predicted = crop @ moves[ref] @ still[i].homography @ np.linalg.inv(crop @ moves[i])
         assert corner_error(a.homography, predicted, moved[0].shape) < 1.0, i

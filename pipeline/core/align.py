@@ -55,10 +55,10 @@ AUTO_MODEL = "auto"
 _PERSPECTIVE_MODELS = ("homography", "keystone")
 # "auto" fits the keystone for the whole stack where one neighbour pair shows a turn
 # (``_turn_found``): refining its similarity as a keystone takes away this share of its
-# decorrelation (1 - ECC correlation, half resolution; the four real stacks: at most 0.019;
-# pcb7's copies seen through a 16 mm lens on APS-C turned by up to 0.25 / 0.5 / 1 degree:
-# 0.11 / 0.28 / 0.58), moves a corner by this many px of the matching copy (turned pairs that
-# pass the share: 1.1-4.4) and points its perspective row as a turn does (the cosine)
+# decorrelation (1 - ECC correlation, half resolution; the four real stacks: at most 0.030;
+# pcb7's copies seen through a 16 mm lens on APS-C turned by up to 0.25-1 degree: 0.11-0.67),
+# moves a corner by this many px of the matching copy (those turned pairs: 0.78-6.4) and
+# points its perspective row as a turn does (the cosine; those turned pairs: 0.82-1.0)
 _TURN_SHARE = 0.05
 _TURN_CORNER_PX = 0.5
 _TURN_ALIGNMENT = 0.7
@@ -454,8 +454,8 @@ def estimate_alignment(
         keystone's 0.27-0.35 px, a homography's 0.29-0.35 px; on pcb7, pcb10 and
         amber a similarity's corners move by 0.9-5.6 px when the frames are
         cropped, a homography's by 2.2-12 px. On pcb7's copies seen through a
-        16 mm lens turned by up to 0.25-1 degree, the keystone lands 0.67-0.83 px
-        from the truth, the homography 1.15-1.25 px, the similarity 0.93-3.62 px
+        16 mm lens turned by up to 0.25-1 degree, the keystone lands 0.67-0.77 px
+        from the truth, the homography 1.12-1.25 px, the similarity 0.93-3.64 px
         (``tests/benchmarks/align_models.py``). "auto" (the default) fits the
         similarity and, where a neighbour pair shows a turn's keystone
         (``_turn_found``), the keystone for the whole stack; it costs one more
@@ -632,7 +632,7 @@ def estimate_alignment(
     ) as pool:
         out, pairs = solve("similarity" if model == AUTO_MODEL else model, pool)
         if model == AUTO_MODEL:
-            turn = _turn_found(pyramids, pairs, pool)
+            turn = _turn_found(pyramids, pairs, pool, label)
             if turn:
                 logger.info("alignment: %s; fitting the keystone model", turn)
                 out, _ = solve("keystone", pool)
@@ -670,18 +670,23 @@ def _turn_evidence(
 
 
 def _turn_found(
-    pyramids: list[list[np.ndarray]], pairs: dict[tuple[int, int], np.ndarray], pool
+    pyramids: list[list[np.ndarray]],
+    pairs: dict[tuple[int, int], np.ndarray],
+    pool,
+    label: Sequence[str],
 ) -> str:
-    """Which neighbour pair shows a turn's keystone ('' where none does), for "auto".
+    """Which neighbour pair shows a turn's keystone ('' where none does), for "auto";
+    ``label`` names the frames.
 
     A turn is seen where refining the pair's similarity as a keystone
     (:func:`_turn_evidence`) takes away ``_TURN_SHARE`` or more of its decorrelation, moves
     a corner by ``_TURN_CORNER_PX`` or more and points its perspective row as a turn's
     (cosine ``_TURN_ALIGNMENT`` or more). The blur differences of stacks that were not
-    turned raise the share as well (rendered breathing stacks, real stacks cropped: up to
-    0.17), but with the perspective row in any direction (cosines -0.98..-0.06 where the
-    share and the corner pass); turned pairs that pass them have cosines of 0.80-1.0
-    (``tests/benchmarks/align_models.py``).
+    turned raise the share as well (rendered breathing stacks, real stacks cropped or read
+    at 384 px: up to 0.17), mostly with corners moved by less than 0.5 px; where they move
+    one further (amber cropped by 16%: share 0.11, 0.75 px) the perspective row points
+    against the shift (cosine -0.90). The turned pairs have cosines of 0.82-1.0
+    (``tests/benchmarks/align_models.py``, its last table).
     """
 
     def evidence(pair: tuple[int, int]) -> tuple[float, float, float]:
@@ -690,9 +695,9 @@ def _turn_found(
     for (i, j), (share, moved, cosine) in zip(pairs, pool.map(evidence, pairs)):
         if share >= _TURN_SHARE and moved >= _TURN_CORNER_PX and cosine >= _TURN_ALIGNMENT:
             return (
-                f"frames {i} and {j} differ by a turn's keystone (it takes away {share:.0%} of "
-                f"the decorrelation a similarity leaves and moves a corner by {moved:.1f} px "
-                f"of the matching copy)"
+                f"{label[i]} and {label[j]} differ by a turn's keystone (it takes away "
+                f"{share:.0%} of the decorrelation a similarity leaves and moves a corner by "
+                f"{moved:.1f} px of the matching copy)"
             )
     return ""
 
