@@ -194,11 +194,12 @@ def add_alignment(parser: argparse.ArgumentParser, *, defaults: bool = True) -> 
     parser.add_argument(
         "--align-model",
         choices=ALIGN_MODELS,
-        default="auto" if defaults else None,
+        default="similarity" if defaults else None,
         help="what an estimated alignment fits: a shift, turn and scaling (similarity: focus "
         "breathing, a rail, a steady hand), also the keystone of a wide-angle lens turned "
         "between frames (keystone), shear (affine) or all of these (homography); auto: the "
-        "similarity, or the keystone where frames show one",
+        "similarity, or the keystone where a pair of frames shows one (a depth gradient "
+        "across the frame can look like one)",
     )
 
 

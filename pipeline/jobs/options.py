@@ -24,7 +24,8 @@ ALIGN_MODES = ("estimate", "analytic", "none")
 # stacks of issue 13 these fit the blur differences instead: rendered breathing stacks' corners
 # 0.27-0.35 px from the truth against 0.17-0.21 px; pcb7's, pcb10's and amber's corners
 # moving 2.2-12 px (similarity 0.9-5.6 px) when the frames are cropped. "auto" fits the
-# similarity, and the keystone where a pair of frames shows a turn's
+# similarity, and the keystone where a pair of frames shows a turn's; it is not the default
+# because a depth gradient across the frame can look like one
 # (tests/benchmarks/results/align/align_models.md)
 ALIGN_MODELS = ("auto", "similarity", "keystone", "affine", "homography")
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
@@ -37,7 +38,7 @@ class StackOptions:
     lens: str | None = None
     method: str = "wiener"
     align: str = "estimate"
-    align_model: str = "auto"
+    align_model: str = "similarity"
     encoding: str | None = None
     blur_span_px: float | None = None
     tile_px: int = 1024
