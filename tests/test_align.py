@@ -807,3 +807,28 @@ def test_scale_is_read_where_asked_against_finite_differences(at):
     assert scale_of(h, at) == pytest.approx(area_scale(h, at), rel=1e-6)
     assert scale_of(h) == pytest.approx(math.sqrt(np.linalg.det(h[:2, :2])), rel=1e-12)
     assert abs(scale_of(h, (383.5, 287.5)) / scale_of(h) - 1) > 0.005
+
+
+def test_a_scale_where_the_map_goes_to_infinity_is_an_error():
+    """``scale_of(h, at)`` where ``h`` sends ``at`` to infinity (w = 0) or behind (w < 0) is
+    a clear error naming the point, not a division by zero."""
+    h = np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.01, 0, 1.0]])  # w = 1 - 0.01 x
+    assert scale_of(h, (50.0, 0.0)) == pytest.approx(area_scale(h, (50.0, 0.0)), rel=1e-4)
+    for x in (100.0, 150.0):
+        with pytest.raises(InputError, match=rf"point \({x}, 0.0\) to infinity or behind"):
+            scale_of(h, (x, 0.0))
+
+
+def test_a_half_without_texture_counts_as_disagreeing():
+    """The halves' test of "auto": where one half cannot be fitted (flat, so ECC fails),
+    the turn is not taken as seen, whatever the other pair of halves says."""
+    from pipeline.core.align import _halves_spread
+
+    rng = np.random.default_rng(0)
+    textured = cv2.GaussianBlur(rng.random((96, 128)).astype(np.float32), (0, 0), 2.0)
+    # the top half: the second pair of halves (a NaN there once slipped through max())
+    flat_top = textured.copy()
+    flat_top[:48] = 0.5
+    keystone = np.array([[1.0, 0, 0], [0, 1.0, 0], [1e-4, 0, 1.0]])
+    assert math.isfinite(_halves_spread(textured, textured, np.eye(3), keystone))
+    assert _halves_spread(flat_top, flat_top, np.eye(3), keystone) == math.inf

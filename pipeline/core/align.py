@@ -164,6 +164,11 @@ def scale_of(h: np.ndarray, at: tuple[float, float] | None = None) -> float:
     if at is not None:
         x = np.array([at[0], at[1], 1.0])
         w = float(m[2] @ x)
+        if not w > 0:
+            raise InputError(
+                f"the homography sends the point {tuple(at)} to infinity or behind the camera "
+                f"(w = {w:.3g}); its scale there is undefined: {m.tolist()}"
+            )
         mapped = (m[:2] @ x) / w
         jacobian = (m[:2, :2] - np.outer(mapped, m[2, :2])) / w
     return float(math.sqrt(abs(np.linalg.det(jacobian))))
@@ -318,7 +323,7 @@ def _project(w: np.ndarray, model: str, shape: tuple[int, int]) -> np.ndarray:
     if model == "homography":
         return m
     if model == "keystone":
-        c = np.array([[1.0, 0, (shape[1] - 1) / 2], [0, 1.0, (shape[0] - 1) / 2], [0, 0, 1.0]])
+        c = _centring(shape)
         centred = np.linalg.inv(c) @ m @ c
         centred = centred / centred[2, 2]
         p = np.eye(3)
@@ -465,7 +470,7 @@ def estimate_alignment(
         where a neighbour pair shows a turn's keystone (``_turn_found``), the
         keystone for the whole stack; it costs one more half-resolution ECC per
         pair (0.04 s on the four real stacks' 768 px copies). It found every
-        turned stack of the benchmark and left 42 variants of the real stacks
+        turned stack of the benchmark and left 43 variants of the real stacks
         alone, but reads a depth gradient across the frame as a turn (a 256 px
         stack of three planes: a pair's keystone took away 27% of the
         decorrelation, moved a corner by 1.8 px and fitted both halves alike),
@@ -647,23 +652,31 @@ def estimate_alignment(
     return out
 
 
+def _centring(shape: tuple[int, int]) -> np.ndarray:
+    """Maps coordinates centred on a ``shape`` image to its pixel coordinates."""
+    return np.array([[1.0, 0, (shape[1] - 1) / 2], [0, 1.0, (shape[0] - 1) / 2], [0, 0, 1.0]])
+
+
 def _centred_perspective(k: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """The perspective row of ``k`` in coordinates centred on a ``shape`` image."""
-    rows, cols = shape
-    c = np.array([[1.0, 0, (cols - 1) / 2], [0, 1.0, (rows - 1) / 2], [0, 0, 1.0]])
+    c = _centring(shape)
     centred = np.linalg.inv(c) @ k @ c
     return centred[2, :2] / centred[2, 2]
 
 
-def _halves_spread(template: np.ndarray, image: np.ndarray, w: np.ndarray) -> float:
+def _halves_spread(
+    template: np.ndarray, image: np.ndarray, w: np.ndarray, whole: np.ndarray
+) -> float:
     """How far the keystone's perspective row fitted on one half of ``template`` is from
     the one fitted on the other half (left/right, top/bottom, the larger), in units of the
-    whole frame's row: a turn's keystone is one for the whole frame, while blur
-    differences fitted as perspective follow the content of each half. From ``w``."""
+    row of ``whole``, the keystone fitted on the whole frame: a turn's keystone is one for
+    the whole frame, while blur differences fitted as perspective follow the content of
+    each half. Each half is fitted from ``w``; a half that cannot be fitted (no texture)
+    counts as disagreeing (infinite)."""
     rows, cols = template.shape
     criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 30, 1e-5)
 
-    def fitted(mask: np.ndarray | None) -> np.ndarray:
+    def fitted(mask: np.ndarray) -> np.ndarray:
         warp32 = w.astype(np.float32)
         try:
             _, warp32 = cv2.findTransformECC(
@@ -680,10 +693,11 @@ def _halves_spread(template: np.ndarray, image: np.ndarray, w: np.ndarray) -> fl
         mask = np.zeros((rows, cols), np.uint8)
         mask[part] = 1
         halves.append(fitted(mask))
-    whole = np.linalg.norm(fitted(None))
-    apart = max(np.linalg.norm(halves[0] - halves[1]), np.linalg.norm(halves[2] - halves[3]))
-    spread = float(apart / whole) if whole > 0 else math.inf
-    return spread if math.isfinite(spread) else math.inf
+    row = float(np.linalg.norm(_centred_perspective(whole, (rows, cols))))
+    apart = [float(np.linalg.norm(a - b)) for a, b in (halves[:2], halves[2:])]
+    if row <= 0 or not all(math.isfinite(a) for a in apart):  # max() would skip a NaN
+        return math.inf
+    return max(apart) / row
 
 
 def _turn_evidence(
@@ -711,7 +725,7 @@ def _turn_evidence(
     moved = float(np.hypot(*(a[:2] / a[2] - b[:2] / b[2])).max()) * template[-1].shape[0] / rows
     if share < _TURN_SHARE or moved < _TURN_CORNER_PX:
         return share, moved, math.inf
-    return share, moved, _halves_spread(template[level], image[level], w)
+    return share, moved, _halves_spread(template[level], image[level], w, k)
 
 
 def _turn_found(
