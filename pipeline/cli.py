@@ -41,11 +41,13 @@ def build_parser() -> Parser:
 def configure_logging(quiet: bool, verbose: bool) -> None:
     """Warnings and errors by default; ``-v`` adds flexdof's own events (INFO and DEBUG),
     not the libraries' (an EXIF reader's DEBUG is one line per tag); ``-q`` leaves errors
-    only."""
+    only. tifffile's own warnings (an offset past the end of a file cut short) are left
+    out: the reader reports the same fault as one error that names the file."""
     level = logging.ERROR if quiet else logging.DEBUG if verbose else logging.WARNING
     logging.basicConfig(format="%(levelname)s: %(message)s")  # no-op when already set up
     logging.getLogger().setLevel(max(level, logging.WARNING))
     logging.getLogger("pipeline").setLevel(level)
+    logging.getLogger("tifffile").setLevel(logging.ERROR)
 
 
 def subcommands(parser: argparse.ArgumentParser, path: tuple[str, ...] = ()):

@@ -7,6 +7,7 @@ they skip with the reason, unless ``FLEXDOF_REQUIRE_SHARED_DATA=1`` (set by
 
 from __future__ import annotations
 
+import logging
 import os
 from pathlib import Path
 
@@ -45,3 +46,17 @@ def shared_data() -> Path:
 def repo_root() -> Path:
     """The project's checkout (for lens_profiles/, stacks/, workflows/)."""
     return REPO_ROOT
+
+
+@pytest.fixture(autouse=True)
+def _logger_levels():
+    """Put back the levels ``flexdof -q``/``-v`` set (``cli.configure_logging``).
+
+    A test that ran ``main(["-q", ...])`` left the ``pipeline`` logger at ERROR, so a
+    later test's ``caplog`` saw no warnings: tests passed or failed by their order.
+    """
+    loggers = [logging.getLogger(name) for name in ("", "pipeline", "tifffile")]
+    levels = [log.level for log in loggers]
+    yield
+    for log, level in zip(loggers, levels, strict=True):
+        log.setLevel(level)

@@ -18,6 +18,8 @@ from PIL.TiffImagePlugin import IFDRational
 from pipeline.core.colour import linear_to_srgb, srgb_to_linear
 from pipeline.errors import InputError
 from pipeline.io.exif import read_exif, subject_distance_mm
+from pipeline.io.icc import read_icc
+from pipeline.io.orientation import exif_orientation
 from pipeline.io.probe import frame_info
 from pipeline.io.read import read_frame
 from pipeline.io.write import write_image, write_json
@@ -109,6 +111,56 @@ def test_tiff_decoding(tmp_path, dtype, planar):
     assert image.shape == (9, 11, 3) and image.dtype == np.float32
     np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-9)
     assert frame_info(path).shape == (9, 11, 3)
+
+
+@pytest.mark.parametrize("channels", [1, 3])
+@pytest.mark.parametrize(
+    ("codec", "dtype"),
+    [
+        (5, np.uint8),  # LZW: what Photoshop, Lightroom and OpenCV write by default
+        (5, np.uint16),
+        (5, np.float32),
+        (32946, np.uint16),  # Deflate, which tifffile decodes itself
+        (32946, np.float32),  # libtiff adds the floating-point predictor tifffile lacks
+    ],
+)
+def test_compressed_tiff_written_by_libtiff(tmp_path, codec, dtype, channels):
+    """Bytes from libtiff (through OpenCV's writer) decode to the stored samples, in RGB."""
+    rng = np.random.default_rng(5)
+    shape = (9, 11, channels) if channels == 3 else (9, 11)
+    if np.dtype(dtype).kind == "f":
+        data = rng.random(shape).astype(dtype) * 1.5 - 0.2
+        expected = data.astype(np.float64)
+    else:
+        top = np.iinfo(dtype).max
+        data = rng.integers(0, top + 1, shape, dtype=dtype)
+        expected = eotf(data, top)
+    path = tmp_path / "img.tif"
+    stored = data[..., ::-1] if channels == 3 else data  # OpenCV writes BGR
+    assert cv2.imwrite(str(path), stored, [cv2.IMWRITE_TIFF_COMPRESSION, codec])
+    with tifffile.TiffFile(path) as tif:
+        assert int(tif.pages.first.compression) == codec
+    image = read_frame(path)
+    assert image.shape == shape and image.dtype == np.float32
+    np.testing.assert_allclose(image, expected, rtol=1e-6, atol=1e-9)
+
+
+def test_jpeg_compressed_tiff_keeps_its_colours(tmp_path):
+    rows, cols = np.mgrid[0:32, 0:48]
+    rgb = np.stack([rows * 7, np.full_like(rows, 128), 255 - cols * 5], -1).astype(np.uint8)
+    path = tmp_path / "img.tif"
+    assert cv2.imwrite(str(path), rgb[..., ::-1], [cv2.IMWRITE_TIFF_COMPRESSION, 7])
+    codes = np.rint(linear_to_srgb(read_frame(path)) * 255)
+    assert np.abs(codes - rgb).mean() < 3  # lossy, but red stays red and blue blue
+
+
+def test_tiff_with_a_codec_nothing_here_decodes(tmp_path):
+    path = tmp_path / "webp.tif"
+    tifffile.imwrite(path, np.zeros((8, 8, 3), np.uint8), photometric="rgb")
+    with tifffile.TiffFile(path, mode="r+b") as tif:
+        tif.pages.first.tags["Compression"].overwrite(50001)  # WebP: needs imagecodecs
+    with pytest.raises(InputError, match=r"webp\.tif: cannot decode its WEBP.*imagecodecs"):
+        read_frame(path)
 
 
 def test_tiff_transfer_override(tmp_path):
@@ -357,6 +409,39 @@ def test_truncated_png(tmp_path):
     bad = cut(tmp_path / "ok.png", tmp_path / "t.png", 0.8)
     with pytest.raises(InputError, match=r"t\.png: truncated PNG"):
         read_frame(bad)
+
+
+@pytest.mark.parametrize("fraction", [0.3, 0.95])
+@pytest.mark.parametrize("writer", ["tifffile", "libtiff"])
+def test_truncated_tiff(tmp_path, writer, fraction):
+    """libtiff (OpenCV, Photoshop) writes the image directory after the pixels, so a
+    file cut short has none: tifffile raised IndexError, a traceback in the CLI."""
+    image = np.random.default_rng(3).integers(0, 65535, (60, 80, 3), dtype=np.uint16)
+    whole = tmp_path / "whole.tif"
+    if writer == "tifffile":
+        tifffile.imwrite(whole, image, photometric="rgb")
+    else:
+        assert cv2.imwrite(str(whole), image)  # LZW, directory last
+    bad = cut(whole, tmp_path / "t.tif", fraction)
+    for func in (read_frame, frame_info):
+        with pytest.raises(InputError, match=r"t\.tif: truncated TIFF.*copy it again"):
+            func(bad)
+    assert exif_orientation(bad) == 1 and read_icc(bad) is None  # read_frame names the fault
+    assert subject_distance_mm(bad) is None
+
+
+def test_a_frame_cut_short_is_one_line_in_the_cli(tmp_path, capsys):
+    from pipeline.cli import main
+
+    rng = np.random.default_rng(4)
+    for i in range(3):
+        frame = rng.integers(0, 65535, (64, 96, 3), dtype=np.uint16)
+        assert cv2.imwrite(str(tmp_path / f"f{i}.tif"), frame)
+    cut(tmp_path / "f1.tif", tmp_path / "f1.tif", 0.5)
+    assert main(["stack", str(tmp_path), "-o", str(tmp_path / "out.tif")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "f1.tif: truncated TIFF" in err, err
+    assert not (tmp_path / "out.tif").exists()
 
 
 @pytest.mark.parametrize("name", ["x.jpg", "x.png", "x.tif", "x.dng", "x.nef"])

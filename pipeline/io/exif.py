@@ -14,6 +14,7 @@ from pipeline.errors import InputError
 from pipeline.io.probe import (
     _EXIF_HEADER,
     _existing,
+    _first_tiff_page,
     _jpeg_structure,
     _kind,
     _png_chunk,
@@ -97,7 +98,7 @@ def subject_distance_mm(path: str | Path) -> float | None:
     else:
         try:
             with tifffile.TiffFile(p) as tif:
-                tag = tif.pages.first.tags.get("ExifTag")
+                tag = _first_tiff_page(tif, p).tags.get("ExifTag")
                 rational = None if tag is None else tag.value.get("SubjectDistance")
         except (tifffile.TiffFileError, struct.error, ValueError):
             return None  # not TIFF-structured (CR3, RAF, ...): no EXIF IFD to read

@@ -21,7 +21,14 @@ import tifffile
 
 from pipeline.errors import InputError
 from pipeline.io.exif import _insert_jpeg_segment, _insert_png_chunk
-from pipeline.io.probe import _ICC_HEADER, _existing, _jpeg_structure, _kind, _png_chunk
+from pipeline.io.probe import (
+    _ICC_HEADER,
+    _existing,
+    _first_tiff_page,
+    _jpeg_structure,
+    _kind,
+    _png_chunk,
+)
 
 _JPEG_CHUNK = 0xFFFF - 2 - len(_ICC_HEADER) - 2  # data bytes per APP2 segment: 65519
 
@@ -42,7 +49,7 @@ def read_icc(path: str | Path) -> bytes | None:
     if kind == "tiff":
         try:
             with tifffile.TiffFile(p) as tif:
-                tag = tif.pages.first.tags.get("InterColorProfile")
+                tag = _first_tiff_page(tif, p).tags.get("InterColorProfile")
                 return None if tag is None else bytes(tag.value)
         except (tifffile.TiffFileError, struct.error, ValueError):
             return None

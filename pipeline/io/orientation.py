@@ -22,7 +22,7 @@ import numpy as np
 import tifffile
 
 from pipeline.io.exif import _ifd_entries, read_exif
-from pipeline.io.probe import _EXIF_HEADER, _existing, _kind, _raw_error
+from pipeline.io.probe import _EXIF_HEADER, _existing, _first_tiff_page, _kind, _raw_error
 
 log = logging.getLogger(__name__)
 
@@ -90,7 +90,7 @@ def exif_orientation(path: str | Path) -> int:
     else:
         try:
             with tifffile.TiffFile(p) as tif:
-                tag = tif.pages.first.tags.get("Orientation")
+                tag = _first_tiff_page(tif, p).tags.get("Orientation")
                 code = UPRIGHT if tag is None else int(tag.value)
         except (tifffile.TiffFileError, struct.error, ValueError, TypeError):
             code = UPRIGHT  # unreadable here: read_frame names the file's problem

@@ -155,7 +155,9 @@ def frame_info(path: str | Path) -> FrameInfo:
     if kind == "tiff":
         try:
             with tifffile.TiffFile(p) as tif:
-                rows, cols, channels = _tiff_page_info(tif.pages.first, p)
+                rows, cols, channels = _tiff_page_info(_first_tiff_page(tif, p), p)
+        except InputError:
+            raise
         except (tifffile.TiffFileError, OSError, ValueError, struct.error) as err:
             raise InputError(f"{p}: cannot read TIFF ({type(err).__name__}: {err})") from err
         return FrameInfo(rows, cols, channels)
@@ -208,7 +210,29 @@ def _raw_error(path: Path, err: Exception) -> InputError:
     )
 
 
+def _first_tiff_page(tif: tifffile.TiffFile, path: Path) -> tifffile.TiffPage:
+    """The first page of a TIFF-structured file (TIFF, NEF, CR2, DNG, ...).
+
+    libtiff writes the image directory after the pixels, so a file cut short (a copy
+    not finished, a card pulled out) has none; tifffile then raises IndexError.
+    """
+    try:
+        return tif.pages.first
+    except IndexError:
+        raise InputError(
+            f"{path}: truncated TIFF (no image directory: cut short, or still "
+            "being copied?); copy it again"
+        ) from None
+
+
 def _tiff_page_info(page: tifffile.TiffPage, path: Path) -> tuple[int, int, int]:
+    size = page.parent.filehandle.size
+    ends = [o + n for o, n in zip(page.dataoffsets, page.databytecounts, strict=False)]
+    if ends and max(ends) > size:
+        raise InputError(
+            f"{path}: truncated TIFF (its pixels end at byte {max(ends)}, the file at {size}); "
+            "copy it again"
+        )
     axes, shape = page.axes, page.shape
     if axes == "YX":
         return shape[0], shape[1], 1

@@ -46,6 +46,7 @@ from pipeline.core.colour import srgb_to_linear
 from pipeline.errors import InputError
 from pipeline.io.probe import (
     _existing,
+    _first_tiff_page,
     _jpeg_structure,
     _kind,
     _png_structure,
@@ -335,18 +336,48 @@ def _to_rgb(image: np.ndarray, path: Path, *, bgr: bool) -> np.ndarray:
     return np.ascontiguousarray(image)
 
 
+def _tifffile_decodes(page: tifffile.TiffPage) -> bool:
+    """Whether tifffile has a decoder for the page's compression and predictor.
+
+    Without the optional imagecodecs package it decodes Deflate and PackBits but not
+    LZW (what Photoshop, Lightroom and OpenCV write by default), JPEG or the
+    floating-point predictor.
+    """
+    return page.compression in tifffile.TIFF.DECOMPRESSORS and (
+        page.predictor in tifffile.TIFF.PREDICTORS
+    )
+
+
+def _tiff_by_opencv(path: Path, page: tifffile.TiffPage) -> np.ndarray:
+    """The first page decoded by OpenCV's libtiff (LZW, JPEG, the float predictor), RGB."""
+    data = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+    if data is None or data.dtype != page.dtype:
+        codec = getattr(page.compression, "name", page.compression)
+        predictor = getattr(page.predictor, "name", page.predictor)
+        raise InputError(
+            f"{path}: cannot decode its {codec} compression with predictor {predictor} "
+            "(tifffile lacks the codec and OpenCV cannot read the file); save it "
+            "uncompressed or with LZW or Deflate, or `pip install imagecodecs`"
+        )
+    return _to_rgb(data, path, bgr=True)
+
+
 def _read_tiff(path: Path, transfer: str | None, white: float | None = None) -> np.ndarray:
     try:
         with tifffile.TiffFile(path) as tif:
-            page = tif.pages.first
+            page = _first_tiff_page(tif, path)
             _tiff_page_info(page, path)
-            data = page.asarray()
             mode = _tiff_transfer(page, transfer)
-            axes = page.axes
+            if _tifffile_decodes(page):
+                data = page.asarray()
+                if page.axes == "SYX":
+                    data = np.moveaxis(data, 0, -1)
+    except InputError:
+        raise
     except (tifffile.TiffFileError, OSError, ValueError, struct.error) as err:
         raise InputError(f"{path}: cannot read TIFF ({type(err).__name__}: {err})") from err
-    if axes == "SYX":
-        data = np.moveaxis(data, 0, -1)
+    if not _tifffile_decodes(page):
+        data = _tiff_by_opencv(path, page)
     image = _decode_codes(_to_rgb(data, path, bgr=False), mode, path)
     if white is not None:
         if data.dtype.kind != "f":
