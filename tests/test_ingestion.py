@@ -102,6 +102,41 @@ def test_other_result_names_are_skipped(frames_only, name):
     assert [f.name for f in load_stack(frames_only).files] == FRAMES
 
 
+def test_hidden_files_are_not_frames(frames_only):
+    """A Mac leaves ``._NAME`` resource forks beside every file on a card (FAT, exFAT)."""
+    for name in FRAMES:
+        (frames_only / f"._{name}").write_bytes(b"\x00\x05\x16\x07\x00\x02\x00\x00Mac OS X")
+    (frames_only / ".DS_Store").write_bytes(b"\x00\x00\x00\x01Bud1")
+    assert [f.name for f in load_stack(frames_only).files] == FRAMES
+
+
+def test_raw_plus_jpeg_shots_stack_the_raw_files(tmp_path, shared_data, caplog):
+    """A camera set to RAW+JPEG writes each shot twice; the RAW files are the frames."""
+    dng = shared_data / "raw-dng-canon550d" / "colorchart.dng"
+    for i in (1, 2, 10):
+        shutil.copy(dng, tmp_path / f"IMG_{i:04d}.DNG")
+        cv2.imwrite(str(tmp_path / f"IMG_{i:04d}.JPG"), np.zeros((8, 8, 3), np.uint8))
+    with caplog.at_level(logging.WARNING):
+        stack = load_stack(tmp_path)
+    assert [f.name for f in stack.files] == ["IMG_0001.DNG", "IMG_0002.DNG", "IMG_0010.DNG"]
+    assert "each shot is there as RAW and as .JPG (IMG_0001.DNG, IMG_0001.JPG)" in caplog.text
+    assert "stacking the 3 RAW files" in caplog.text and "*.JPG" in caplog.text
+    # Named by a glob, the JPEGs are taken.
+    assert [f.suffix for f in load_stack(str(tmp_path / "*.JPG")).files] == [".JPG"] * 3
+
+
+@pytest.mark.parametrize("extra", ["png", "raw_short"])
+def test_shots_twice_in_other_formats_are_refused_by_name(frames_only, shared_data, extra):
+    if extra == "png":  # the same frames exported twice: which to take is the user's call
+        for name in FRAMES:
+            cv2.imwrite(str(frames_only / name.replace(".png", ".tif")), np.zeros((8, 8), np.uint8))
+    else:  # a RAW twin for one shot only: the others would mix RAW and PNG frames
+        dng = shared_data / "raw-dng-canon550d" / "colorchart.dng"
+        shutil.copy(dng, frames_only / "frame_03.dng")
+    with pytest.raises(InputError, match=r"frame_0\d is there 2 times \(frame_0\d\.\w+, frame_0"):
+        load_stack(frames_only)
+
+
 def test_output_that_is_an_input_frame_is_refused(sample, monkeypatch):
     frame = sample / "frame_03.png"
     before = frame.read_bytes()

@@ -31,7 +31,13 @@ from pipeline.core.lens import Lens
 from pipeline.core.motion import Profile
 from pipeline.errors import InputError
 from pipeline.io.exif import subject_distance_mm
-from pipeline.io.probe import IMAGE_EXTENSIONS, FrameInfo, frame_info, supported_extensions
+from pipeline.io.probe import (
+    IMAGE_EXTENSIONS,
+    RAW_EXTENSIONS,
+    FrameInfo,
+    frame_info,
+    supported_extensions,
+)
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_frame
 
@@ -210,9 +216,45 @@ def _drop_results(files: list[Path], where: str) -> list[Path]:
     return kept
 
 
+def _one_format_per_shot(files: list[Path], where: str) -> list[Path]:
+    """The RAW files where every shot is there as RAW and as JPEG/TIFF (RAW+JPEG).
+
+    Cameras set to RAW+JPEG write ``IMG_0001.CR2`` beside ``IMG_0001.JPG``; stacking
+    both would take each shot twice, in two sizes and encodings. The RAW files are
+    linear light, what the weighted average of Sec. 9 sums, so they are the frames
+    (logged). Other twins (the same shots exported twice) are refused by name.
+    """
+    shots: dict[str, list[Path]] = {}
+    for file in sorted(files, key=natural_key):
+        shots.setdefault(file.stem.lower(), []).append(file)
+    twins = [group for group in shots.values() if len(group) > 1]
+    if not twins:
+        return files
+    raws = [[f for f in group if f.suffix.lower() in RAW_EXTENSIONS] for group in shots.values()]
+    first = twins[0]
+    if all(len(raw) == 1 for raw in raws):
+        other = next(f for f in first if f.suffix.lower() not in RAW_EXTENSIONS)
+        log.warning(
+            "%s: each shot is there as RAW and as %s (%s); stacking the %d RAW files "
+            "(name the others, e.g. '%s', to stack them instead)",
+            where, other.suffix, ", ".join(f.name for f in first), len(raws),
+            Path(where) / f"*{other.suffix}",
+        )
+        return [raw[0] for raw in raws]
+    raise InputError(
+        f"{where}: {first[0].stem} is there {len(first)} times "
+        f"({', '.join(f.name for f in first)}): the same shots in two formats? name one "
+        f"kind, e.g. '{Path(where) / ('*' + first[0].suffix)}'"
+    )
+
+
 def _images_in(directory: Path) -> list[Path]:
-    found = [p for p in directory.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS]
-    files = _drop_results(found, str(directory))
+    found = [
+        p
+        for p in directory.iterdir()
+        if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS and not p.name.startswith(".")
+    ]  # hidden files: a Mac's "._IMG_0001.JPG" resource forks on a card, partial downloads
+    files = _one_format_per_shot(_drop_results(found, str(directory)), str(directory))
     if not files:
         skipped = f" (skipped {len(found)} result file(s))" if found else ""
         raise InputError(
@@ -266,7 +308,9 @@ def load_stack(paths: str | Path | Sequence[str | Path]) -> Stack:
         results (an image with a result sidecar ``NAME.json`` beside it) and
         files named like another tool's result (``expected.jpg``,
         ``result.png``, ``*_edof.tif``, ``stacked.tif``, ...), with a warning;
-        name such a file explicitly to use it as a frame.
+        name such a file explicitly to use it as a frame. A directory leaves out
+        hidden files (``._IMG_0001.JPG``) and, where every shot is there as RAW and
+        as JPEG or TIFF, the latter (``_one_format_per_shot``).
 
     Raises
     ------
