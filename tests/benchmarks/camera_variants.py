@@ -20,6 +20,11 @@ kept), so that they differ only in what the variant changes:
   3 degrees. (A control and variant reduced to half size were tried: the region measures'
   windows and scales are in pixels, and at half size their flat mask took pcb7's fine board
   texture for flat.)
+* ``high ISO``: each frame with a sensor's shot and read noise added in linear light (seeded per
+  frame), as an APS-C sensor at ISO 3200 records it: a full well of 780 electrons (25,000 at ISO
+  100, over 32) and a read noise of 3 electrons, so mid-grey (0.18) carries a noise of 0.015 in
+  linear light, about 4.6 levels of 8-bit sRGB. Camera JPEGs would smooth some of it away; these
+  do not (the harder case for a deconvolution, which amplifies noise);
 * ``wide-angle turned`` and its control ``cropped as turned``: every frame seen as a camera
   with a 16 mm lens on APS-C (82 degrees across the diagonal) sees it when turned by a
   seeded angle of up to 0.5 degree about each of its three axes (``K R K^-1``: a shift, a
@@ -42,7 +47,9 @@ import glob
 import json
 import subprocess
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -58,20 +65,37 @@ STEADY_HAND = (0.015, 0.5)
 LOOSE_HAND = (0.06, 3.0)
 # (largest turn about each axis in degrees, half the diagonal field of view in degrees)
 WIDE_TURN = (0.5, 41.0)
-# variant -> (EXIF orientation, per-frame gain in linear light as a function of n frames,
-# how the frames are moved: None, or (how, hand) with how "crop" (cropped as that hand's
-# moves would crop them, not moved) or "move" (moved and cropped))
+# (full well, read noise), electrons: an APS-C sensor at ISO 3200
+ISO_3200 = (780.0, 3.0)
+
+
+class Variant(NamedTuple):
+    """How a variant's frames differ from the stack's."""
+
+    orientation: int  # EXIF orientation
+    gains: Callable[[int], np.ndarray]  # per-frame gain in linear light, of n frames
+    # how the frames are moved: None, or (how, hand) with how "crop" (cropped as that
+    # hand's moves would crop them, not moved) or "move" (moved and cropped)
+    motion: tuple | None = None
+    noise: tuple[float, float] | None = None  # (full well, read noise) in electrons
+
+
+def _steady(n: int) -> np.ndarray:
+    return np.ones(n)
+
+
 VARIANTS = {
-    "as shot": (1, lambda n: np.ones(n), None),
-    "portrait": (6, lambda n: np.ones(n), None),
-    "exposure ramp": (1, lambda n: np.linspace(1.08, 0.92, n), None),
-    "flicker": (1, lambda n: np.resize([1.0, 0.85, 1.0, 1.10, 1.0, 0.90], n), None),
-    "cropped": (1, lambda n: np.ones(n), ("crop", STEADY_HAND)),
-    "handheld": (1, lambda n: np.ones(n), ("move", STEADY_HAND)),
-    "cropped more": (1, lambda n: np.ones(n), ("crop", LOOSE_HAND)),
-    "loose hand": (1, lambda n: np.ones(n), ("move", LOOSE_HAND)),
-    "cropped as turned": (1, lambda n: np.ones(n), ("crop", WIDE_TURN)),
-    "wide-angle turned": (1, lambda n: np.ones(n), ("move", WIDE_TURN)),
+    "as shot": Variant(1, _steady),
+    "portrait": Variant(6, _steady),
+    "exposure ramp": Variant(1, lambda n: np.linspace(1.08, 0.92, n)),
+    "flicker": Variant(1, lambda n: np.resize([1.0, 0.85, 1.0, 1.10, 1.0, 0.90], n)),
+    "cropped": Variant(1, _steady, ("crop", STEADY_HAND)),
+    "handheld": Variant(1, _steady, ("move", STEADY_HAND)),
+    "cropped more": Variant(1, _steady, ("crop", LOOSE_HAND)),
+    "loose hand": Variant(1, _steady, ("move", LOOSE_HAND)),
+    "cropped as turned": Variant(1, _steady, ("crop", WIDE_TURN)),
+    "wide-angle turned": Variant(1, _steady, ("move", WIDE_TURN)),
+    "high ISO": Variant(1, _steady, noise=ISO_3200),
 }
 
 
@@ -126,19 +150,24 @@ def turn_motions(
     return motions, (margin, margin, rows - 2 * margin, cols - 2 * margin)
 
 
-def make_variant(
-    frames: list[Path], folder: Path, orientation: int, gains, motion: tuple | None
-) -> None:
-    """The frames re-encoded into ``folder`` with ``gains`` and EXIF ``orientation``; with
-    ``motion`` ("move", hand) moved as by that hand and cropped, with ("crop", hand) only
-    cropped alike."""
+def make_variant(frames: list[Path], folder: Path, variant: Variant) -> None:
+    """The frames re-encoded into ``folder`` with the variant's gains and EXIF orientation;
+    with its motion ("move", hand) moved as by that hand and cropped, with ("crop", hand)
+    only cropped alike; with its noise, a sensor's shot and read noise added."""
     folder.mkdir(parents=True, exist_ok=True)
-    for k, (path, gain) in enumerate(zip(frames, gains)):
+    motion = variant.motion
+    for k, (path, gain) in enumerate(zip(frames, variant.gains(len(frames)))):
         with Image.open(path) as image:
             exif = image.getexif()
             codes = np.asarray(image.convert("RGB"), np.float64) / 255
-        exif[0x0112] = orientation
-        linear = np.clip(_srgb_to_linear(codes) * gain, 0, 1).astype(np.float32)
+        exif[0x0112] = variant.orientation
+        linear = np.clip(_srgb_to_linear(codes) * gain, 0, 1)
+        if variant.noise is not None:
+            well, read = variant.noise
+            rng = np.random.default_rng(100 + k)
+            electrons = rng.poisson(linear * well) + rng.normal(0, read, linear.shape)
+            linear = np.clip(electrons / well, 0, 1)
+        linear = linear.astype(np.float32)
         if motion is not None:
             how, hand = motion
             moves = turn_motions if hand == WIDE_TURN else hand_motions
@@ -186,11 +215,10 @@ def main() -> int:
     if unknown:
         parser.error(f"--variants: unknown {', '.join(unknown)}; choose from {', '.join(VARIANTS)}")
     for variant in chosen:
-        orientation, gains, motion = VARIANTS[variant]
         label = f"-{args.label}" if args.label else ""
         name = f"{args.stack}-{variant.replace(' ', '-')}{label}"
         folder = args.out / "frames" / name
-        make_variant(frames, folder, orientation, gains(len(frames)), motion)
+        make_variant(frames, folder, VARIANTS[variant])
         scored = args.out / name
         subprocess.run(
             [
