@@ -154,6 +154,23 @@ def test_jpeg_compressed_tiff_keeps_its_colours(tmp_path):
     assert np.abs(codes - rgb).mean() < 3  # lossy, but red stays red and blue blue
 
 
+@pytest.mark.parametrize("opaque", [True, False])
+def test_lzw_tiff_with_alpha(tmp_path, opaque):
+    """libtiff's RGBA path (OpenCV) multiplies colour by an unassociated alpha."""
+    rng = np.random.default_rng(6)
+    rgb = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    alpha = np.full((12, 16, 1), 255, np.uint8) if opaque else rng.integers(1, 256, (12, 16, 1))
+    path = tmp_path / "rgba.tif"
+    Image.fromarray(np.dstack([rgb, alpha.astype(np.uint8)]), "RGBA").save(
+        path, compression="tiff_lzw"
+    )
+    if opaque:
+        np.testing.assert_allclose(read_frame(path), eotf(rgb, 255), rtol=1e-6, atol=1e-9)
+    else:
+        with pytest.raises(InputError, match=r"rgba\.tif: its alpha channel is not opaque"):
+            read_frame(path)
+
+
 def test_tiff_with_a_codec_nothing_here_decodes(tmp_path):
     path = tmp_path / "webp.tif"
     tifffile.imwrite(path, np.zeros((8, 8, 3), np.uint8), photometric="rgb")

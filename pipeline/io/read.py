@@ -359,7 +359,22 @@ def _tiff_by_opencv(path: Path, page: tifffile.TiffPage) -> np.ndarray:
             "(tifffile lacks the codec and OpenCV cannot read the file); save it "
             "uncompressed or with LZW or Deflate, or `pip install imagecodecs`"
         )
-    return _to_rgb(data, path, bgr=True)
+    if data.ndim == 3 and data.shape[2] in (2, 4) and data.dtype.kind != "f":
+        if data[..., -1].min() < np.iinfo(data.dtype).max:  # libtiff's RGBA path multiplies
+            raise InputError(  # the colour by an unassociated alpha: not the stored colour
+                f"{path}: its alpha channel is not opaque, and OpenCV, which decodes this "
+                "compression here, multiplies the colour by it; save it without alpha, "
+                "uncompressed, or `pip install imagecodecs`"
+            )
+    image = _to_rgb(data, path, bgr=True)
+    rows, cols, channels = _tiff_page_info(page, path)
+    if image.shape[:2] != (rows, cols) or (image.ndim == 3) != (channels == 3):
+        raise InputError(
+            f"{path}: OpenCV decoded its {getattr(page.compression, 'name', '')} data as "
+            f"{image.shape}, not the {rows}x{cols} px, {channels} channel(s) its tags say; "
+            "save it uncompressed or `pip install imagecodecs`"
+        )
+    return image
 
 
 def _read_tiff(path: Path, transfer: str | None, white: float | None = None) -> np.ndarray:
