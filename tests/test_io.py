@@ -171,6 +171,15 @@ def test_lzw_tiff_with_alpha(tmp_path, opaque):
             read_frame(path)
 
 
+def test_lzw_tiff_of_16_bit_rgba_reads_as_stored(tmp_path):
+    """OpenCV reads 16-bit RGBA as stored (only 8-bit goes through libtiff's RGBA path)."""
+    rgba = np.random.default_rng(7).integers(1, 65536, (12, 16, 4), dtype=np.uint16)
+    path = tmp_path / "rgba16.tif"
+    assert cv2.imwrite(str(path), rgba)  # LZW, alpha not opaque
+    expected = eotf(rgba[..., 2::-1], 65535)  # the stored RGB
+    np.testing.assert_allclose(read_frame(path), expected, rtol=1e-6, atol=1e-9)
+
+
 def test_tiff_with_a_codec_nothing_here_decodes(tmp_path):
     path = tmp_path / "webp.tif"
     tifffile.imwrite(path, np.zeros((8, 8, 3), np.uint8), photometric="rgb")

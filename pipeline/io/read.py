@@ -348,31 +348,34 @@ def _tifffile_decodes(page: tifffile.TiffPage) -> bool:
     )
 
 
-def _tiff_by_opencv(path: Path, page: tifffile.TiffPage) -> np.ndarray:
-    """The first page decoded by OpenCV's libtiff (LZW, JPEG, the float predictor), RGB."""
+def _tiff_by_opencv(path: Path, page: tifffile.TiffPage, info: tuple[int, int, int]) -> np.ndarray:
+    """The first page decoded by OpenCV's libtiff (LZW, JPEG, the float predictor), RGB;
+    ``info`` is the page's ``(rows, cols, channels)`` by its tags."""
+    codec = getattr(page.compression, "name", page.compression)
     data = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
     if data is None or data.dtype != page.dtype:
-        codec = getattr(page.compression, "name", page.compression)
         predictor = getattr(page.predictor, "name", page.predictor)
         raise InputError(
             f"{path}: cannot decode its {codec} compression with predictor {predictor} "
             "(tifffile lacks the codec and OpenCV cannot read the file); save it "
             "uncompressed or with LZW or Deflate, or `pip install imagecodecs`"
         )
-    if data.ndim == 3 and data.shape[2] in (2, 4) and data.dtype.kind != "f":
-        if data[..., -1].min() < np.iinfo(data.dtype).max:  # libtiff's RGBA path multiplies
-            raise InputError(  # the colour by an unassociated alpha: not the stored colour
-                f"{path}: its alpha channel is not opaque, and OpenCV, which decodes this "
-                "compression here, multiplies the colour by it; save it without alpha, "
-                "uncompressed, or `pip install imagecodecs`"
-            )
+    # 8-bit RGBA goes through libtiff's RGBA interface, which multiplies the colour by an
+    # unassociated alpha (16-bit and float are read as stored)
+    rgba8 = data.dtype == np.uint8 and data.ndim == 3 and data.shape[2] == 4
+    if rgba8 and data[..., 3].min() < 255:
+        raise InputError(
+            f"{path}: its alpha channel is not opaque, and OpenCV, which decodes this "
+            "compression here, multiplies the colour by it; save it without alpha, "
+            "uncompressed, or `pip install imagecodecs`"
+        )
     image = _to_rgb(data, path, bgr=True)
-    rows, cols, channels = _tiff_page_info(page, path)
+    rows, cols, channels = info
     if image.shape[:2] != (rows, cols) or (image.ndim == 3) != (channels == 3):
         raise InputError(
-            f"{path}: OpenCV decoded its {getattr(page.compression, 'name', '')} data as "
-            f"{image.shape}, not the {rows}x{cols} px, {channels} channel(s) its tags say; "
-            "save it uncompressed or `pip install imagecodecs`"
+            f"{path}: OpenCV decoded its {codec} data as {image.shape}, not the "
+            f"{rows}x{cols} px, {channels} channel(s) its tags say; save it uncompressed "
+            "or `pip install imagecodecs`"
         )
     return image
 
@@ -381,9 +384,10 @@ def _read_tiff(path: Path, transfer: str | None, white: float | None = None) -> 
     try:
         with tifffile.TiffFile(path) as tif:
             page = _first_tiff_page(tif, path)
-            _tiff_page_info(page, path)
+            info = _tiff_page_info(page, path)
             mode = _tiff_transfer(page, transfer)
-            if _tifffile_decodes(page):
+            decodes = _tifffile_decodes(page)
+            if decodes:
                 data = page.asarray()
                 if page.axes == "SYX":
                     data = np.moveaxis(data, 0, -1)
@@ -391,8 +395,8 @@ def _read_tiff(path: Path, transfer: str | None, white: float | None = None) -> 
         raise
     except (tifffile.TiffFileError, OSError, ValueError, struct.error) as err:
         raise InputError(f"{path}: cannot read TIFF ({type(err).__name__}: {err})") from err
-    if not _tifffile_decodes(page):
-        data = _tiff_by_opencv(path, page)
+    if not decodes:
+        data = _tiff_by_opencv(path, page, info)
     image = _decode_codes(_to_rgb(data, path, bgr=False), mode, path)
     if white is not None:
         if data.dtype.kind != "f":
