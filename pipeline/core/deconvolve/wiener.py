@@ -214,7 +214,6 @@ def _plan_wiener(
     kernel_samples=None,
     noise_gain=None,
     max_noise=None,
-    noise_limit=None,
     auto="gcv",
     sigma_is_estimate=False,
 ):
@@ -228,12 +227,6 @@ def _plan_wiener(
     ``max_noise`` (one value or one per channel; e.g. a single frame's noise, issue 13:
     where GCV's noise agrees with the data's its ``lam`` is near-optimal, and the ceiling
     only smoothed, 2.3 dB on a nine-frame stack at sigma 0.01).
-
-    ``noise_limit`` (one value or one per channel) caps the result's noise std ``gain *
-    sigma`` in every channel, GCV's ``lam`` included: GCV's residual on a real stack is
-    mostly the single kernel's mismatch, so on noisy frames (pcb7 at ISO 3200) it does not
-    see the noise, and its ``lam`` sat at the ``MAX_NOISE_GAIN`` floor whatever the noise
-    (see :func:`pipeline.core.frame_support.visible_noise_limit`).
 
     ``sigma_is_estimate``: ``sigma`` is the data's own estimate, an upper bound that fine
     texture raises (:func:`pipeline.core.deconvolve.common.estimate_noise_sigma`), not a
@@ -303,10 +296,6 @@ def _plan_wiener(
         if ceiling is not None:  # the result's noise std at most max_noise (issue 13),
             ok = (sigma > 0) & ~trusted  # where GCV's lam, near-optimal there, is not used
             gain[ok] = np.minimum(gain[ok], np.maximum(ceiling[ok], 1e-9) / sigma[ok])
-        limit = _per_channel("noise_limit", noise_limit, y.shape[2])
-        if limit is not None:  # every channel, GCV's lam included (issue 13)
-            ok = sigma > 0
-            gain[ok] = np.minimum(gain[ok], np.maximum(limit[ok], 1e-9) / sigma[ok])
         floors = {g: lam_for_noise_gain(k, g, prior) for g in set(gain.tolist())}
         lam = np.maximum(lam, [floors[g] for g in gain.tolist()])
     lam = np.clip(lam, _LAM_MIN, None)
