@@ -877,6 +877,11 @@ def warp(
         raise InputError(
             f"interpolation must be one of {sorted(_INTERPOLATIONS)}, got {interpolation!r}"
         )
+    if (rows, cols) == src.shape[:2] and np.array_equal(inverse, np.eye(3)):
+        # the identity (a reference frame): exact, where OpenCV 5.1 resamples a float32
+        # pixel an ulp off
+        out = src.copy() if a.dtype == np.float32 else src.astype(np.float64)
+        return (out, np.ones((rows, cols), np.float32)) if return_coverage else out
     flags = _INTERPOLATIONS[interpolation] | cv2.WARP_INVERSE_MAP
     size = (cols, rows)
     channels = 1 if src.ndim == 2 else src.shape[2]

@@ -348,11 +348,26 @@ def _tifffile_decodes(page: tifffile.TiffPage) -> bool:
     )
 
 
+# The codecs the OpenCV fallback is used for: those its libtiff decodes in every release
+# (OpenCV 5.1's also claims WebP, and returns zeros for data it then fails to decode, with
+# only a log line: other codecs get the one-line error instead)
+OPENCV_TIFF_CODECS = frozenset(
+    {
+        tifffile.COMPRESSION.LZW,
+        tifffile.COMPRESSION.JPEG,
+        tifffile.COMPRESSION.ADOBE_DEFLATE,
+        tifffile.COMPRESSION.DEFLATE,
+    }
+)
+
+
 def _tiff_by_opencv(path: Path, page: tifffile.TiffPage, info: tuple[int, int, int]) -> np.ndarray:
     """The first page decoded by OpenCV's libtiff (LZW, JPEG, the float predictor), RGB;
     ``info`` is the page's ``(rows, cols, channels)`` by its tags."""
     codec = getattr(page.compression, "name", page.compression)
-    data = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
+    data = None
+    if page.compression in OPENCV_TIFF_CODECS:
+        data = cv2.imdecode(np.frombuffer(path.read_bytes(), np.uint8), cv2.IMREAD_UNCHANGED)
     if data is None or data.dtype != page.dtype:
         predictor = getattr(page.predictor, "name", page.predictor)
         raise InputError(
