@@ -15,6 +15,7 @@ from scipy import ndimage
 
 from pipeline.core import frame_support as fs
 from pipeline.core.deconvolve.dispatch import plan, restore
+from pipeline.core.deconvolve.wiener import MAX_NOISE_GAIN, lam_for_noise_gain
 from pipeline.core.frame_support import FrameSupport
 
 
@@ -351,6 +352,60 @@ def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
     }
     assert "frame_range" not in unclipped.sidecar and "frame_range" not in guarded.sidecar
 
+
+def test_wiener_noise_limit_holds_where_the_gain_ceiling_raised_gcvs_lam():
+    """Unlike ``max_noise``, ``noise_limit`` also caps channels whose lam GCV chose, but
+    only where the gain ceiling raised that lam (GCV asked for more than MAX_NOISE_GAIN:
+    on a real stack its residual is mostly kernel mismatch, pcb7 at ISO 3200); a lam the
+    data chose above the ceiling's floor stands (rendered scenes with noise)."""
+    rng = np.random.default_rng(11)
+    kernel = np.zeros((31, 31))
+    kernel[15, 3:28] = 1.0  # wide and asymmetric
+    kernel[16:24, 15] = 0.5
+    kernel /= kernel.sum()
+    sharp = ndimage.gaussian_filter(rng.uniform(0, 1, (256, 256)), 1.0)
+    clean = ndimage.convolve(sharp, kernel, mode="reflect").astype(np.float32)
+    inner = (slice(40, -40), slice(40, -40))
+    floor = lam_for_noise_gain(kernel, MAX_NOISE_GAIN)
+
+    def output_noise(noisy, p):
+        return np.std((restore(noisy, p) - restore(clean, p))[inner])
+
+    # faint noise: GCV asks for a lam under the floor, so the ceiling sets it
+    faint = 5e-4
+    noisy = clean + rng.normal(0, faint, clean.shape).astype(np.float32)
+    ceiling = plan(noisy, kernel, method="wiener", noise_sigma=faint)
+    assert ceiling.params["lam"][0] == pytest.approx(floor)
+    assert output_noise(noisy, ceiling) > 8 * faint  # the ceiling's gain, 10
+    limited = plan(noisy, kernel, method="wiener", noise_sigma=faint, noise_limit=3 * faint)
+    assert output_noise(noisy, limited) == pytest.approx(3 * faint, rel=0.15)
+    assert limited.params["lam"][0] > 3 * floor
+    loose = plan(noisy, kernel, method="wiener", noise_sigma=faint, noise_limit=100 * faint)
+    np.testing.assert_array_equal(loose.params["lam"], ceiling.params["lam"])
+    # strong noise: GCV's own lam is above the floor and no limit moves it
+    sigma = 0.01
+    noisy = clean + rng.normal(0, sigma, clean.shape).astype(np.float32)
+    gcv_plan = plan(noisy, kernel, method="wiener", noise_sigma=sigma)
+    assert gcv_plan.params["lam"][0] > 2 * floor
+    assert output_noise(noisy, gcv_plan) > 1.5 * sigma  # it amplifies the noise
+    held = plan(noisy, kernel, method="wiener", noise_sigma=sigma, noise_limit=1.2 * sigma)
+    np.testing.assert_array_equal(held.params["lam"], gcv_plan.params["lam"])
+
+
+def test_visible_noise_limit_is_a_frames_noise_or_the_visible_floor():
+    rng = np.random.default_rng(5)
+    base = ndimage.gaussian_filter(rng.uniform(0.1, 0.7, (160, 160)), 2.0).astype(np.float32)
+    for sigma, expected in ((0.02, 0.02), (0.002, fs.VISIBLE_NOISE)):
+        frames = [base + rng.normal(0, sigma, base.shape).astype(np.float32) for _ in range(4)]
+        support = _streamed(frames, [0, 1, 2, 3], full=False)
+        average = np.mean(frames, axis=0)
+        clipped = np.zeros(base.shape, bool)
+        limit = fs.visible_noise_limit(support, average, clipped)
+        np.testing.assert_allclose(limit, expected, rtol=0.1)
+    # frames no noisier than their average: their "noise" is texture, no limit is set
+    same = [base, base.copy()]
+    support = _streamed(same, [0, 1], full=False)
+    assert fs.visible_noise_limit(support, base, np.zeros(base.shape, bool)) is None
 
 def test_quiet_flat_areas_takes_the_averages_fine_band_where_every_frame_is_flat():
     rng = np.random.default_rng(3)

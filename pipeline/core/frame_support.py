@@ -142,14 +142,14 @@ class FrameSupport:
     @classmethod
     def of_frame(cls, frame: np.ndarray, valid: np.ndarray, *, full: bool = True) -> FrameSupport:
         """The statistics of one frame (``valid``: its pixels not clipped). Without
-        ``full``, only its range (``focus`` and ``sharpest`` ``None``, no noise): all that
-        :func:`clip_to_frames` needs."""
+        ``full``, only its range and noise (``focus`` and ``sharpest`` ``None``): all that
+        :func:`clip_to_frames` and :func:`visible_noise_limit` need."""
         codes = to_codes(frame)  # one array for all three until a merge writes
         rgb = frame.ndim == 3 and frame.shape[2] == 3
         colour = colour_codes(frame) if rgb else None
-        if not full:
-            return cls(codes, codes, None, None, [], colour, colour)
         noise = [frame_noise(frame, valid)]
+        if not full:
+            return cls(codes, codes, None, None, noise, colour, colour)
         return cls(codes, codes, focus_measure(codes), codes, noise, colour, colour)
 
     def merge(self, other: FrameSupport) -> FrameSupport:
@@ -273,6 +273,31 @@ def noise_ceiling(support: FrameSupport, average: np.ndarray, clipped) -> np.nda
     if not np.all(frame > frame_noise(average, ~clipped)):
         return None
     return frame_noise_ceiling(support)
+
+
+VISIBLE_NOISE = 0.006  # linear light: 1.7 levels of 8-bit sRGB at mid-grey (linear 0.18)
+
+
+def visible_noise_limit(
+    support: FrameSupport, average: np.ndarray, clipped
+) -> np.ndarray | None:
+    """The default Wiener result's noise std limit per channel, or ``None``.
+
+    ``max(VISIBLE_NOISE, a frame's noise)``, set where the frames read noisier than their
+    average (so their noise is noise, see :func:`noise_ceiling`): a result may be as noisy
+    as the frame focused at each pixel (the peer's composite is), or as noisy as a grain
+    under about two 8-bit levels, but not more. The limit binds only on noisy frames:
+    the average's noise estimate times ``MAX_NOISE_GAIN`` (10) stays under
+    ``VISIBLE_NOISE`` on pcb7, pcb10 and beetle as shot (0.0054, 0.0023, 0.0014 in G).
+    It binds on amber (0.0011 in G: gain 5.6, its region count unchanged) and on pcb7 at
+    ISO 3200 (0.0021: gain 2.8, lam 13x the floor; 0/9 regions against focus-stack
+    became 5/9; issue 13). Unlike the frame guard's :func:`frame_noise_ceiling` it also
+    holds GCV's ``lam``, whose residual on real stacks is mostly kernel mismatch.
+    """
+    frame = support.median_noise()
+    if not np.all(frame > frame_noise(average, ~clipped)):
+        return None
+    return np.maximum(frame, VISIBLE_NOISE)
 
 
 def _channels(image: np.ndarray) -> list[np.ndarray]:

@@ -67,12 +67,14 @@ def restore_image(
     kernel_samples=None,
     source=None,
     max_noise=None,
+    noise_limit=None,
 ) -> np.ndarray:
     """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
 
     ``kernel_samples`` (the blur at several depths) can make Wiener robust to the
     residual depth dependence of the IPSF (see :func:`wiener_options`); ``max_noise``
-    caps the Wiener result's noise std (per channel). Images whose
+    caps the Wiener result's noise std (per channel) where GCV's ``lam`` is not used,
+    ``noise_limit`` in every channel. Images whose
     values exceed ``RESCALE_ABOVE`` (float frames in other units) are deconvolved
     divided by their peak and scaled back, so float32 sums cannot overflow.
     ``source`` (the frames, for messages) names the input in errors.
@@ -92,6 +94,8 @@ def restore_image(
         extra = wiener_options(kernel, kernel_samples)
         if max_noise is not None:
             extra["max_noise"] = max_noise / scale
+        if noise_limit is not None:
+            extra["noise_limit"] = noise_limit / scale
     finite = np.isfinite(image)
     if not np.all(finite):
         raise InputError(

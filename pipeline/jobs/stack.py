@@ -34,6 +34,7 @@ from pipeline.core.frame_support import (
     keep_to_frames,
     noise_ceiling,
     quiet_flat_areas,
+    visible_noise_limit,
 )
 from pipeline.core.lens import Lens
 from pipeline.core.stack_kernel import frame_kernels, positions_from_scales, stack_kernel
@@ -725,7 +726,11 @@ def process_stack(
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
-    ceiling = noise_ceiling(frames, average, clipped) if options.frame_guard else None
+    ceiling = limit = None
+    if options.frame_guard:
+        ceiling = noise_ceiling(frames, average, clipped)
+    elif frames is not None:
+        limit = visible_noise_limit(frames, average, clipped)
     source = _describe_frames(stack)
     multi = options.method == "multiframe"  # the Sec. 9 result first: its fallback
     result = restore_image(
@@ -736,10 +741,13 @@ def process_stack(
         kernel_samples=kernel_samples,
         source=source,
         max_noise=ceiling,
+        noise_limit=limit,
     )
     timings["deconvolve"] = time.perf_counter() - t0
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
+    if limit is not None:
+        sidecar["noise_limit"] = [float(v) for v in limit]
     t0 = time.perf_counter()
     if options.frame_guard:
         result, blended = keep_to_frames(result, frames, clipped)
