@@ -9,6 +9,7 @@ from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from contextvars import ContextVar
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from scipy import fft as sfft
@@ -189,8 +190,18 @@ def _spectral_noise_bound(y: np.ndarray, valid: np.ndarray) -> float:
         return float("inf")
     q = y[crop].astype(np.float64)
     power = np.abs(sfft.rfft2(q - q.mean(), workers=_WORKERS)) ** 2 / q.size
-    radius = np.hypot(sfft.fftfreq(q.shape[0])[:, None], sfft.rfftfreq(q.shape[1])[None, :])
-    return float(np.sqrt(exact_median(power[radius > SPECTRAL_BAND]) / np.log(2)))
+    return float(np.sqrt(exact_median(power[_high_band(q.shape)]) / np.log(2)))
+
+
+@lru_cache(maxsize=8)
+def _high_band(shape: tuple[int, int]) -> np.ndarray:
+    """The rfft2 bins of ``shape`` beyond ``SPECTRAL_BAND`` cycles/px (read-only; cached:
+    every frame of a stack has the same crop, and building the mask took a quarter of
+    the bound's time)."""
+    radius = np.hypot(sfft.fftfreq(shape[0])[:, None], sfft.rfftfreq(shape[1])[None, :])
+    band = radius > SPECTRAL_BAND
+    band.flags.writeable = False
+    return band
 
 
 MEDIAN_SAMPLE = 1024  # values :func:`exact_median` brackets the median with
