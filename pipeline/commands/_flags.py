@@ -275,8 +275,9 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         "frame_range",
         False,
         "the paper's linear result as it is (by default, where every aligned frame is flat "
-        "the result's fine band is taken from their average, and the result is clipped to the "
-        "frames' 3x3 range: no amplified noise in flat areas, no rims or dark moats)",
+        "the result's fine band is taken from their average, the result is clipped to the "
+        "frames' 3x3 range, and its noise held to a frame's where the Wiener filter's gain "
+        "ceiling set its regularisation: no amplified noise in flat areas, no rims or dark moats)",
     )
     add_match_exposure(parser)
     add_crop(parser)
