@@ -336,7 +336,12 @@ def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
     high = ndimage.maximum_filter(frames.max(axis=0), size=(3, 3, 1), mode="nearest")
     high[np.any(frames >= 0.999, axis=(0, 3))] = np.inf  # clipped somewhere: no upper bound
     high[high >= 1 - 0.5 / fs.CODE_MAX] = np.inf  # white within 3x3 (the end code): open
-    tol = 1.5 / fs.CODE_MAX
+    # 1.5 codes (nearest codes, widened by one by the clip), plus float32 rounding, at most
+    # 2**-9 code each: of the codes' product (fs.to_codes; OpenCV 5.1 multiplies in float32:
+    # a frame at 25920.50096 codes read 25920, so the clip's bound, 25919, sat 1.50096 codes
+    # below it), of the clip's bound (fs.from_codes) and of this test's bound; float32's
+    # eps is 2**-7 code
+    tol = 1.5 / fs.CODE_MAX + np.finfo(np.float32).eps
 
     def outside(image, tol=tol):
         return (image < low - tol) | (image > high + tol)
