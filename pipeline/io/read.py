@@ -350,7 +350,9 @@ def _tifffile_decodes(page: tifffile.TiffPage) -> bool:
 
 # The codecs the OpenCV fallback is used for: those its libtiff decodes in every release
 # (OpenCV 5.1's also claims WebP, and returns zeros for data it then fails to decode, with
-# only a log line: other codecs get the one-line error instead)
+# only a log line: other codecs get the one-line error instead). A failed JPEG or 16-bit
+# LZW strip returns None; a corrupt 8-bit LZW strip comes back as zeros past the damage
+# under 5.0 and 5.1 alike (libtiff's RGBA reader only logs it), which nothing here can see
 OPENCV_TIFF_CODECS = frozenset(
     {
         tifffile.COMPRESSION.LZW,
