@@ -147,14 +147,16 @@ class FrameSupport:
     @classmethod
     def of_frame(cls, frame: np.ndarray, valid: np.ndarray, *, full: bool = True) -> FrameSupport:
         """The statistics of one frame (``valid``: its pixels not clipped). Without
-        ``full``, only its range and noise (``focus`` and ``sharpest`` ``None``): all that
-        :func:`clip_to_frames` and :func:`visible_noise_limit` need."""
+        ``full``, only its range and noise, the noise on a ``LIMIT_NOISE_CROP_PX`` crop
+        (``focus`` and ``sharpest`` ``None``): all that :func:`clip_to_frames` and
+        :func:`visible_noise_limit` need."""
         codes = to_codes(frame)  # one array for all three until a merge writes
         rgb = frame.ndim == 3 and frame.shape[2] == 3
         colour = colour_codes(frame) if rgb else None
-        noise = [frame_noise(frame, valid)]
         if not full:
+            noise = [frame_noise(frame, valid, LIMIT_NOISE_CROP_PX)]
             return cls(codes, codes, None, None, noise, colour, colour)
+        noise = [frame_noise(frame, valid)]
         return cls(codes, codes, focus_measure(codes), codes, noise, colour, colour)
 
     def merge(self, other: FrameSupport) -> FrameSupport:
@@ -225,18 +227,22 @@ def focus_measure(frame: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum(energy, 0.0))
 
 
-NOISE_CROP_PX = 1024  # centre crop the per-frame noise estimate reads
+NOISE_CROP_PX = 1024  # centre crop the frame guard's per-frame noise estimate reads
+# ... and the default's (the noise limit's), read on every frame as it is summed: a
+# quarter of the pixels (pcb7: 15 against 59 ms a frame; at 1024 px it added 0.2 s, 36%,
+# to pcb7's accumulation)
+LIMIT_NOISE_CROP_PX = 512
 
 
-def frame_noise(frame: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Noise std per channel of a frame, on a centre crop, by the estimator Wiener uses on
-    the average (:func:`pipeline.core.deconvolve.common.noise_sigma_2d`: the lower of the
-    Haar and spectral bounds), so the two are comparable (the Haar bound alone reads a
-    clean frame's fine texture as noise: 4e-4 on a clean synthetic stack, which then
-    held Wiener 6 dB below its clean result)."""
-    r0 = max(0, (frame.shape[0] - NOISE_CROP_PX) // 2)
-    c0 = max(0, (frame.shape[1] - NOISE_CROP_PX) // 2)
-    crop = (slice(r0, r0 + NOISE_CROP_PX), slice(c0, c0 + NOISE_CROP_PX))
+def frame_noise(frame: np.ndarray, valid: np.ndarray, crop_px: int = NOISE_CROP_PX) -> np.ndarray:
+    """Noise std per channel of a frame, on a centre crop of ``crop_px``, by the estimator
+    Wiener uses on the average (:func:`pipeline.core.deconvolve.common.noise_sigma_2d`: the
+    lower of the Haar and spectral bounds), so the two are comparable (the Haar bound alone
+    reads a clean frame's fine texture as noise: 4e-4 on a clean synthetic stack, which
+    then held Wiener 6 dB below its clean result)."""
+    r0 = max(0, (frame.shape[0] - crop_px) // 2)
+    c0 = max(0, (frame.shape[1] - crop_px) // 2)
+    crop = (slice(r0, r0 + crop_px), slice(c0, c0 + crop_px))
     channels = frame[..., None] if frame.ndim == 2 else frame
     ok = valid[crop]
     return np.array(
@@ -291,16 +297,18 @@ def visible_noise_limit(
     ``max(VISIBLE_NOISE, a frame's noise)``, set where the frames read noisier than their
     average (so their noise is noise, see :func:`noise_ceiling`): a result may be as noisy
     as the frame focused at each pixel (the peer's composite is), or as noisy as a grain
-    under about two 8-bit levels, but not more. The limit binds only on noisy frames:
-    the average's noise estimate times ``MAX_NOISE_GAIN`` (10) stays under
+    under about two 8-bit levels, but not more. The Wiener filter applies it only where
+    its gain ceiling set ``lam`` (``noise_limit`` of
+    :func:`pipeline.core.deconvolve.wiener._plan_wiener`), and there it binds only on
+    noisy frames: the average's noise estimate times ``MAX_NOISE_GAIN`` (10) stays under
     ``VISIBLE_NOISE`` on pcb7, pcb10 and beetle as shot (0.0054, 0.0023, 0.0014 in G).
     It binds on amber (0.0011 in G: gain 5.6, its region count unchanged) and on pcb7 at
     ISO 3200 (0.0021: gain 2.8, lam 13x the floor; 0/9 regions against focus-stack
     became 5/9; issue 13). Unlike the frame guard's :func:`frame_noise_ceiling` it also
     holds GCV's ``lam``, whose residual on real stacks is mostly kernel mismatch.
     """
-    frame = support.median_noise()
-    if not np.all(frame > frame_noise(average, ~clipped)):
+    frame = support.median_noise()  # on LIMIT_NOISE_CROP_PX crops (range-only statistics)
+    if not np.all(frame > frame_noise(average, ~clipped, LIMIT_NOISE_CROP_PX)):
         return None
     return np.maximum(frame, VISIBLE_NOISE)
 
