@@ -5,10 +5,14 @@ ringing cannot shrink; frames are compared in the result's geometry (warped by
 the homographies the job reports).
 """
 
+import importlib
+
+import cv2
 import numpy as np
 import pytest
 
-from pipeline.core import align
+from pipeline.core import align, colour
+from pipeline.core import frame_support as fs
 from pipeline.core.quality import sharpness_against_frames
 from pipeline.io.read import read_frame
 from pipeline.jobs.options import StackOptions
@@ -45,3 +49,58 @@ def test_result_is_sharper_than_the_best_frame(shared_data, tmp_path, pattern, s
         scales = [f["scale"] for f in job.sidecar["frames"]]
         assert min(scales) == pytest.approx(scale_range[0], abs=0.01)
         assert max(scales) == pytest.approx(scale_range[1], abs=0.01)
+
+
+def _pcb7_crops(shared_data, folder, noise_rng=None):
+    """pcb7's frames, their centre 1024x768 crop, as 16-bit sRGB PNGs in ``folder``; with
+    ``noise_rng``, an APS-C sensor's shot and read noise at ISO 3200 added in linear light
+    (780 e- at white, 3 e- read noise: 0.015 at mid-grey)."""
+    for path in sorted((shared_data / "focusstack-pcb" / "pcb7").glob("pcb_*.jpg")):
+        linear = read_frame(path)[384:1152, 512:1536]
+        if noise_rng is not None:
+            electrons = noise_rng.poisson(linear * 780.0) + noise_rng.normal(0, 3.0, linear.shape)
+            linear = np.clip(electrons / 780.0, 0.0, 1.0)
+        codes = np.round(colour.linear_to_srgb(linear) * 65535).astype(np.uint16)
+        cv2.imwrite(str(folder / path.with_suffix(".png").name), codes[..., ::-1])
+
+
+def test_noisy_frames_hold_the_wiener_result_to_the_visible_noise(shared_data, tmp_path):
+    """On a real stack GCV's lam lies under the white-noise-gain ceiling's floor with and
+    without high-ISO noise (its residual is the single kernel's mismatch), so the ceiling
+    (gain 10) alone set the result's grain: with ISO 3200 noise 10x the average's. Now,
+    where the ceiling sets lam and the frames read noisier than their average, the
+    result's noise (gain x sigma) is held to VISIBLE_NOISE (0.006 linear); the clean
+    frames keep gain 10 (0.006 / sigma > 10 there) and no limit is recorded."""
+    wiener = importlib.import_module("pipeline.core.deconvolve.wiener")
+    dispatch = importlib.import_module("pipeline.core.deconvolve.dispatch")
+    planned = {}
+    plan = dispatch._plan_wiener
+
+    def spy(y, valid, k, sigma, **options):  # the real planner, its inputs and lam kept
+        params, pad = plan(y, valid, k, sigma, **options)
+        planned.update(kernel=k, sigma=np.asarray(sigma, float), lam=params["lam"])
+        return params, pad
+
+    jobs = {}
+    for name, rng in (("clean", None), ("iso3200", np.random.default_rng(3200))):
+        folder = tmp_path / name
+        folder.mkdir()
+        _pcb7_crops(shared_data, folder, rng)
+        dispatch._plan_wiener = spy
+        try:
+            with scheduler_context(threads=2):
+                job = process_stack(folder, tmp_path / f"{name}.tif", StackOptions())
+        finally:
+            dispatch._plan_wiener = plan
+        floor = wiener.lam_for_noise_gain(planned["kernel"], wiener.MAX_NOISE_GAIN)
+        gain = np.array([wiener.white_noise_gain(planned["kernel"], lam) for lam in planned["lam"]])
+        jobs[name] = job, planned["sigma"], planned["lam"], floor, gain
+    job, sigma, lam, floor, gain = jobs["clean"]
+    np.testing.assert_allclose(lam, floor)  # the ceiling sets lam ...
+    np.testing.assert_allclose(gain, wiener.MAX_NOISE_GAIN, rtol=0.02)  # ... and no limit
+    assert "noise_limit" not in job.sidecar
+    job, sigma, lam, floor, gain = jobs["iso3200"]
+    assert np.all(sigma > 4 * jobs["clean"][1])  # the noise is there
+    np.testing.assert_allclose(job.sidecar["noise_limit"], fs.VISIBLE_NOISE)
+    np.testing.assert_allclose(gain * sigma, fs.VISIBLE_NOISE, rtol=0.03)
+    assert np.all(lam > 10 * floor) and np.all(gain < 3)
