@@ -385,8 +385,10 @@ def test_wiener_noise_limit_holds_where_the_gain_ceiling_raised_gcvs_lam():
     limited = plan(noisy, kernel, method="wiener", noise_sigma=faint, noise_limit=3 * faint)
     assert output_noise(noisy, limited) == pytest.approx(3 * faint, rel=0.15)
     assert limited.params["lam"][0] > 3 * floor
+    assert limited.params["noise_limited"].tolist() == [True]
     loose = plan(noisy, kernel, method="wiener", noise_sigma=faint, noise_limit=100 * faint)
     np.testing.assert_array_equal(loose.params["lam"], ceiling.params["lam"])
+    assert loose.params["noise_limited"].tolist() == [False]  # the ceiling held it first
     # strong noise: GCV's own lam is above the floor and no limit moves it
     sigma = 0.01
     noisy = clean + rng.normal(0, sigma, clean.shape).astype(np.float32)
@@ -395,6 +397,7 @@ def test_wiener_noise_limit_holds_where_the_gain_ceiling_raised_gcvs_lam():
     assert output_noise(noisy, gcv_plan) > 1.5 * sigma  # it amplifies the noise
     held = plan(noisy, kernel, method="wiener", noise_sigma=sigma, noise_limit=1.2 * sigma)
     np.testing.assert_array_equal(held.params["lam"], gcv_plan.params["lam"])
+    assert held.params["noise_limited"].tolist() == [False]
 
 
 def test_visible_noise_limit_is_a_frames_noise_or_the_visible_floor():

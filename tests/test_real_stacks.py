@@ -70,7 +70,8 @@ def test_noisy_frames_hold_the_wiener_result_to_the_visible_noise(shared_data, t
     (gain 10) alone set the result's grain: with ISO 3200 noise 10x the average's. Now,
     where the ceiling sets lam and the frames read noisier than their average, the
     result's noise (gain x sigma) is held to VISIBLE_NOISE (0.006 linear); the clean
-    frames keep gain 10 (0.006 / sigma > 10 there) and no limit is recorded."""
+    frames keep gain 10 (0.006 / sigma > 10 there, so the limit holds no channel, and the
+    sidecar records none)."""
     wiener = importlib.import_module("pipeline.core.deconvolve.wiener")
     dispatch = importlib.import_module("pipeline.core.deconvolve.dispatch")
     planned = {}
@@ -101,6 +102,6 @@ def test_noisy_frames_hold_the_wiener_result_to_the_visible_noise(shared_data, t
     assert "noise_limit" not in job.sidecar
     job, sigma, lam, floor, gain = jobs["iso3200"]
     assert np.all(sigma > 4 * jobs["clean"][1])  # the noise is there
-    np.testing.assert_allclose(job.sidecar["noise_limit"], fs.VISIBLE_NOISE)
+    np.testing.assert_allclose(job.sidecar["noise_limit"], fs.VISIBLE_NOISE)  # held, all 3
     np.testing.assert_allclose(gain * sigma, fs.VISIBLE_NOISE, rtol=0.03)
     assert np.all(lam > 10 * floor) and np.all(gain < 3)

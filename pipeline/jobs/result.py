@@ -68,13 +68,16 @@ def restore_image(
     source=None,
     max_noise=None,
     noise_limit=None,
+    on_plan=None,
 ) -> np.ndarray:
     """Deconvolve (tiled) with clipped pixels censored out of the data term (Sec. 4.2).
 
     ``kernel_samples`` (the blur at several depths) can make Wiener robust to the
     residual depth dependence of the IPSF (see :func:`wiener_options`); ``max_noise``
     caps the Wiener result's noise std (per channel) where GCV's ``lam`` is not used,
-    ``noise_limit`` in every channel. Images whose
+    ``noise_limit`` where the gain ceiling set it (see
+    :func:`pipeline.core.deconvolve.wiener._plan_wiener`); ``on_plan`` is called with the
+    deconvolution's plan (:func:`pipeline.parallel.tiling.deconvolve_tiled`). Images whose
     values exceed ``RESCALE_ABOVE`` (float frames in other units) are deconvolved
     divided by their peak and scaled back, so float32 sums cannot overflow.
     ``source`` (the frames, for messages) names the input in errors.
@@ -104,7 +107,13 @@ def restore_image(
         )
     data = image if scale == 1.0 else (np.asarray(image, np.float64) / scale).astype(image.dtype)
     result = deconvolve_tiled(  # clipped in any frame: at least the observed value
-        data, kernel, method=options.method, tile_px=options.tile_px, censored=clipped, **extra
+        data,
+        kernel,
+        method=options.method,
+        tile_px=options.tile_px,
+        censored=clipped,
+        on_plan=on_plan,
+        **extra,
     )
     if scale != 1.0:
         with np.errstate(over="ignore"):

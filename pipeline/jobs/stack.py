@@ -733,6 +733,7 @@ def process_stack(
         limit = visible_noise_limit(frames, average, clipped)
     source = _describe_frames(stack)
     multi = options.method == "multiframe"  # the Sec. 9 result first: its fallback
+    plans = []
     result = restore_image(
         average,
         kernel,
@@ -742,12 +743,14 @@ def process_stack(
         source=source,
         max_noise=ceiling,
         noise_limit=limit,
+        on_plan=plans.append,
     )
     timings["deconvolve"] = time.perf_counter() - t0
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
-    if limit is not None:
-        sidecar["noise_limit"] = [float(v) for v in limit]
+    held = plans[0].params.get("noise_limited") if plans else None
+    if limit is not None and held is not None and np.any(held):  # where it held lam
+        sidecar["noise_limit"] = [float(v) if h else None for v, h in zip(limit, held)]
     t0 = time.perf_counter()
     if options.frame_guard:
         result, blended = keep_to_frames(result, frames, clipped)

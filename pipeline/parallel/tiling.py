@@ -75,6 +75,7 @@ def deconvolve_tiled(
     overlap_px: int | None = None,
     saturation=None,
     censored=None,
+    on_plan=None,
     **options,
 ):
     """:func:`pipeline.core.deconvolve.dispatch.deconvolve` over overlapping tiles with dask.
@@ -96,6 +97,9 @@ def deconvolve_tiled(
     overlap_px : int, optional
         Overlap ``depth``; default the operator's support (``plan.depth``, see the
         module notes). Smaller values trade accuracy at tile seams for time.
+    on_plan : callable, optional
+        Called with the whole-image :class:`~pipeline.core.deconvolve.common.Plan` once it
+        is made (what the automatic parameters came to, for a sidecar).
 
     Returns
     -------
@@ -126,6 +130,8 @@ def deconvolve_tiled(
             p = dc.plan(
                 whole, kernel, method=method, saturation=saturation, censored=censored, **options
             )
+            if on_plan is not None:
+                on_plan(p)
             return dc.restore(whole, p, censored)
     import dask.array as da  # only the tiled path needs it
 
@@ -133,6 +139,8 @@ def deconvolve_tiled(
         p = dc.plan(
             whole, kernel, method=method, saturation=saturation, censored=censored, **options
         )
+    if on_plan is not None:
+        on_plan(p)
     dtype = np.float32 if whole.dtype == np.float32 else np.float64
     if not lazy and overlap_px is None:  # else most of each tile's work is overlap
         tile_px = max(tile_px, TILE_OVER_REACH * (2 * p.depth + TAPER_PX))

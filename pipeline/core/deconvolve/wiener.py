@@ -232,7 +232,8 @@ def _plan_wiener(
     ``noise_limit`` (one value or one per channel) caps the result's noise std ``gain *
     sigma`` in the channels where the gain ceiling raises the automatic ``lam`` (GCV's
     included), i.e. where GCV or the prior fit asked for a white-noise gain above
-    ``MAX_NOISE_GAIN`` (or ``noise_gain``). There the data did not set ``lam``: GCV's
+    ``MAX_NOISE_GAIN`` (or ``noise_gain``); ``params["noise_limited"]`` says in which
+    channels it then held ``lam``. There the data did not set ``lam``: GCV's
     residual on a real stack is mostly the single kernel's mismatch, so on noisy frames
     (pcb7 at ISO 3200, a 54 px blur span) its ``lam`` (2e-4) lay under the ceiling's
     floor (4.8e-4) whatever the noise, as on the same frames without it, and the result
@@ -273,6 +274,7 @@ def _plan_wiener(
         raise InputError(f"auto must be one of {AUTO_RULES}, got {auto!r}")
     lam = _per_channel("regularization", regularization, y.shape[2])
     variance = None if kernel_samples is None else kernel_variance(kernel_samples, k)
+    limited = np.zeros(y.shape[2], bool)  # channels whose lam noise_limit held
     if lam is None:
         lam = np.zeros_like(sigma)
         # the kernel variance is the spectrum of an autocorrelation, 2k - 1 px wide
@@ -315,10 +317,13 @@ def _plan_wiener(
         if limit is not None:  # where the gain ceiling raises lam, GCV's included (issue 13)
             raised = np.maximum(lam, _LAM_MIN) < [floors[g] for g in gain.tolist()]
             ok = (sigma > 0) & raised
-            gain[ok] = np.minimum(gain[ok], np.maximum(limit[ok], 1e-9) / sigma[ok])
+            held = np.maximum(limit, 1e-9) / np.where(sigma > 0, sigma, 1.0)
+            limited = ok & (held < gain)
+            gain[limited] = held[limited]
             floors.update({g: lam_for_noise_gain(k, g, prior) for g in set(gain.tolist())})
         lam = np.maximum(lam, [floors[g] for g in gain.tolist()])
     lam = np.clip(lam, _LAM_MIN, None)
     pad = _frame_depth(y, k, _wiener_transfer(float(lam.min()), prior, variance))
     params = {"lam": lam, "prior": prior, "pad": pad, "variance": variance}
+    params["noise_limited"] = limited
     return params, pad
