@@ -82,3 +82,18 @@ def test_sparse_is_never_tiled_so_it_equals_the_untiled_result():
     tiled = deconvolve_tiled(image, k, method="sparse", tile_px=24, **options)
     whole = dc.deconvolve(image, k, method="sparse", **options)
     np.testing.assert_allclose(tiled, whole, atol=1e-6)
+
+
+@pytest.mark.parametrize("tiled", [False, True], ids=["whole frame", "tiles"])
+def test_on_plan_receives_the_plan_the_result_was_restored_with(scene, tiled):
+    kernel = disk_kernel(2.5)
+    y = scene.astype(np.float32)
+    plans = []
+    image = da.from_array(y, chunks=(100, 115, 3)) if tiled else y
+    out = deconvolve_tiled(image, kernel, method="wiener", on_plan=plans.append)
+    assert len(plans) == 1
+    expected = dc.plan(y, kernel, method="wiener")
+    np.testing.assert_array_equal(plans[0].params["lam"], expected.params["lam"])
+    assert plans[0].depth == expected.depth
+    restored = dc.restore(y, plans[0])  # the plan handed out is the one the result used
+    assert np.abs(np.asarray(out) - restored).max() < 1e-4
