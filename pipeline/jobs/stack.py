@@ -748,9 +748,10 @@ def process_stack(
     timings["deconvolve"] = time.perf_counter() - t0
     sidecar = stack_sidecar(aligned, weights, options.method, options)
     sidecar["kernel"] = kernel_summary
-    held = plans[0].params.get("noise_limited") if plans else None
-    if limit is not None and held is not None and np.any(held):  # where it held lam
-        sidecar["noise_limit"] = [float(v) if h else None for v, h in zip(limit, held)]
+    if limit is not None:  # what the limit was, and in which channels it held lam
+        held = plans[0].params.get("noise_limited") if plans else None
+        held = np.zeros(len(limit), bool) if held is None else held
+        sidecar["noise_limit"] = {"std": [float(v) for v in limit], "held": held.tolist()}
     t0 = time.perf_counter()
     if options.frame_guard:
         result, blended = keep_to_frames(result, frames, clipped)
