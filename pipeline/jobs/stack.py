@@ -726,13 +726,13 @@ def process_stack(
 
     progress("deconvolve", 0, 1)
     t0 = time.perf_counter()
+    multi = options.method == "multiframe"  # the Sec. 9 result first: its fallback
     ceiling = limit = None
     if options.frame_guard:
         ceiling = noise_ceiling(frames, average, clipped)
-    elif frames is not None:
+    elif frames is not None and (multi or options.method == "wiener"):  # Wiener's limit
         limit = visible_noise_limit(frames, average, clipped)
     source = _describe_frames(stack)
-    multi = options.method == "multiframe"  # the Sec. 9 result first: its fallback
     plans = []
     result = restore_image(
         average,
