@@ -235,7 +235,7 @@ def _plan_wiener(
     ``MAX_NOISE_GAIN`` (or ``noise_gain``); ``params["noise_limited"]`` says in which
     channels it then held ``lam``. There the data did not set ``lam``: GCV's
     residual on a real stack is mostly the single kernel's mismatch, so on noisy frames
-    (pcb7 at ISO 3200, a 54 px blur span) its ``lam`` (2e-4) lay under the ceiling's
+    (pcb7 at ISO 3200, a 54 px blur span) its ``lam`` (1.3-2e-4) lay under the ceiling's
     floor (4.8e-4) whatever the noise, as on the same frames without it, and the result
     carried 10x the average's noise, 3x a frame's. Where GCV's or the prior fit's ``lam``
     is above the floor, the data chose it and it stands (issue 13: on every rendered scene
