@@ -866,6 +866,14 @@ def warp(
     float32 images of 1, 3 or 4 channels at exact positions but quantises positions
     to 1/32 px for float64, 2 channels or over 4, so resampling runs on float32 groups
     of 1, 3 or 4 channels (float32 rounding, ~6e-8 relative, is far smaller).
+
+    Bilinear resampling goes through ``cv2.remap`` with the positions computed here
+    (:func:`_remap_linear`): OpenCV 5.1's bilinear ``warpPerspective`` and
+    ``warpAffine`` give results that depend on how its thread pool splits the rows (a
+    float32 ulp in a few dozen pixels of a 3 Mpx frame), and the split depends on
+    whether another thread holds the pool at that moment, so two runs of one stack
+    differed by up to 2 codes of 65535 in thousands of pixels. Its cubic and Lanczos
+    warps, and ``remap``, do not.
     """
     a = _checked_frame(frame, "frame")
     if len(shape) < 2 or int(shape[0]) < 1 or int(shape[1]) < 1:
@@ -896,8 +904,46 @@ def warp(
     if not return_coverage:
         return out
     ones = np.ones(a.shape[:2], np.float32)
-    coverage = cv2.warpPerspective(ones, inverse, size, flags=flags, borderMode=cv2.BORDER_CONSTANT)
+    coverage = _resample(ones, inverse, size, flags, cv2.BORDER_CONSTANT)
     return out, coverage
+
+
+# rows of positions made at once for the bilinear remap (two float32 maps of 1 MB at 2048 px)
+REMAP_STRIP_ROWS = 128
+
+
+def _remap_linear(image: np.ndarray, inverse: np.ndarray, size: tuple[int, int], border: int):
+    """Bilinear ``out(x, y) = image(H^-1 (x, y))`` by ``cv2.remap``, by strips of
+    ``REMAP_STRIP_ROWS`` rows: the same value for a pixel whatever the strips or OpenCV's
+    threads (see :func:`warp`). Positions are float32 sums of float64 row and column
+    terms (under 3e-4 px off at 4096 px), divided by the homogeneous coordinate where
+    ``H^-1`` is not affine."""
+    cols, rows = size
+    x = np.arange(cols, dtype=np.float64)
+    affine = inverse[2, 0] == 0 and inverse[2, 1] == 0
+    terms = [(inverse[k, 0] * x).astype(np.float32)[None, :] for k in range(3)]
+    out = np.empty((rows, cols, *image.shape[2:]), image.dtype)
+    for r0 in range(0, rows, REMAP_STRIP_ROWS):
+        y = np.arange(r0, min(rows, r0 + REMAP_STRIP_ROWS), dtype=np.float64)
+        u, v, w = (
+            terms[k] + (inverse[k, 1] * y + inverse[k, 2]).astype(np.float32)[:, None]
+            for k in range(3)
+        )
+        if not affine:
+            u, v = u / w, v / w
+        elif inverse[2, 2] != 1.0:
+            u, v = u / np.float32(inverse[2, 2]), v / np.float32(inverse[2, 2])
+        strip = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=border)
+        out[r0 : r0 + len(y)] = strip.reshape(out[r0 : r0 + len(y)].shape)  # (r, c, 1) too
+    return out
+
+
+def _resample(image: np.ndarray, inverse: np.ndarray, size, flags: int, border: int):
+    """``cv2.warpPerspective(image, inverse, size, flags | WARP_INVERSE_MAP, border)``,
+    bilinear through :func:`_remap_linear` (thread-independent)."""
+    if flags & cv2.INTER_MAX == cv2.INTER_LINEAR:
+        return _remap_linear(image, inverse, size, border)
+    return cv2.warpPerspective(image, inverse, size, flags=flags, borderMode=border)
 
 
 def _warp_exact(part: np.ndarray, inverse: np.ndarray, size: tuple[int, int], flags: int):
@@ -914,4 +960,4 @@ def _warp_exact(part: np.ndarray, inverse: np.ndarray, size: tuple[int, int], fl
                 for k in range(2)
             ]
         )
-    return cv2.warpPerspective(part, inverse, size, flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    return _resample(part, inverse, size, flags, cv2.BORDER_REPLICATE)
