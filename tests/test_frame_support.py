@@ -288,6 +288,12 @@ def test_frame_noise_reads_the_frames_noise_and_the_ceiling_has_a_floor():
     frames = [base + rng.normal(0, s, base.shape).astype(np.float32) for s in (0.01, 0.02, 0.03)]
     support = _streamed(frames, [0, 1, 2])
     np.testing.assert_allclose(support.median_noise(), 0.02, rtol=0.05)
+    # the range-only statistics (the noise limit's) hold every frame's noise too, in any
+    # order of the merges (they once kept the first frame's alone: 0.01 here)
+    for order in ([0, 1, 2], [2, 0, 1]):
+        ranged = _streamed(frames, order, full=False)
+        assert len(ranged.noise) == 3
+        np.testing.assert_allclose(ranged.median_noise(), 0.02, rtol=0.05)
     np.testing.assert_allclose(fs.frame_noise_ceiling(support), fs.NOISE_SHARE * 0.02, rtol=0.05)
     clean = _streamed([base, base.copy()], [0, 1])
     np.testing.assert_array_equal(fs.frame_noise_ceiling(clean), fs.NOISE_FLOOR)

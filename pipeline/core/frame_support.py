@@ -175,12 +175,14 @@ class FrameSupport:
                 self.colour_high = self.colour_low.copy()
             cv2.min(self.colour_low, other.colour_low, dst=self.colour_low)
             cv2.max(self.colour_high, other.colour_high, dst=self.colour_high)
+        # every frame's noise, the range-only statistics' too (before stop 42 they kept
+        # only the first frame's: the noise limit read frame 0's, not the frames' median)
+        self.noise = self.noise + other.noise
         if self.focus is None:  # the range only
             return self
         better = cv2.compare(_choice(other.focus - self.focus, self.sharpest.shape), 0, cv2.CMP_GT)
         cv2.copyTo(other.sharpest, better, self.sharpest)
         np.maximum(self.focus, other.focus, out=self.focus)
-        self.noise = self.noise + other.noise
         return self
 
     def median_noise(self) -> np.ndarray:
