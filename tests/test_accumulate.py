@@ -70,20 +70,37 @@ def test_decode_seconds_are_summed_over_the_frames_read(tmp_path, monkeypatch):
     assert read_s == 5.0  # one tick per read, five frames read
 
 
-def test_clipping_in_one_channel_and_at_the_level_itself():
-    image = np.full((3, 4, 3), 0.5)
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_clipping_in_one_channel_and_at_the_level_itself(dtype):
+    """float32 frames take OpenCV's one-pass path, other types numpy's: the same mask."""
+    level = dtype(SATURATION)
+    image = np.full((3, 4, 3), 0.5, dtype)
     image[0, 1, 1] = 1.0  # only the middle channel
     image[2, 3, 2] = 1.0  # only the last one
-    image[1, 2, 0] = SATURATION  # exactly at the level: clipped
-    image[0, 3, 2] = SATURATION  # and in the last channel
+    image[1, 2, 0] = level  # exactly at the level: clipped
+    image[0, 3, 2] = level  # and in the last channel
     image[2, 0, 0] = 1.0  # above the level in the first channel
-    image[1, 0, 1] = np.nextafter(SATURATION, 0.0)  # just below: not
+    image[1, 0, 1] = np.nextafter(level, 0.0)  # just below: not
     expected = np.zeros((3, 4), bool)
     expected[0, 1] = expected[2, 3] = expected[1, 2] = expected[0, 3] = expected[2, 0] = True
     np.testing.assert_array_equal(clipped_pixels(image), expected)
     np.testing.assert_array_equal(clipped_pixels(image[..., 1]), expected & [[0, 1, 0, 0]] * 3)
-    grey = np.array([[SATURATION, np.nextafter(SATURATION, 0.0), 1.0]])
+    grey = np.array([[level, np.nextafter(level, dtype(0.0)), 1.0]], dtype)
     np.testing.assert_array_equal(clipped_pixels(grey), [[True, False, True]])
+    four = np.concatenate([image, np.full((3, 4, 1), 0.5, dtype)], axis=2)
+    four[1, 1, 3] = 1.0  # clipped in a fourth channel only
+    expected[1, 1] = True
+    np.testing.assert_array_equal(clipped_pixels(four), expected)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_a_nan_counts_as_clipped(dtype):
+    image = np.full((2, 3, 3), 0.5, dtype)
+    image[1, 2, 1] = np.nan
+    image[0, 0, 2] = -np.inf  # far below the level: not clipped
+    expected = np.array([[False, False, False], [False, False, True]])
+    np.testing.assert_array_equal(clipped_pixels(image), expected)
+    np.testing.assert_array_equal(clipped_pixels(image[..., 1]), expected)
 
 
 @pytest.mark.parametrize("level, clipped", [(1.0, True), (0.99, False), (0.5, False)])

@@ -495,7 +495,8 @@ def quiet_flat_areas(
         noise = average[a0:a1] - before  # the average's fine band minus the result's
         noise -= cv2.GaussianBlur(noise, (0, 0), FLAT_NOISE_BAND_PX, borderType=cv2.BORDER_REFLECT)
         above = image[max(0, r1 - reach) : r1].copy()
-        image[r0:r1] += noise[r0 - a0 : r1 - a0] * alpha[r0:r1]
+        band = noise[r0 - a0 : r1 - a0]
+        image[r0:r1] += np.multiply(band, alpha[r0:r1], out=band)  # no strip-size temporary
     return image, float(np.mean(alpha > 0.5))
 
 

@@ -182,10 +182,19 @@ def weighted_sum_graph(
 
 
 def clipped_pixels(image: np.ndarray) -> np.ndarray:
-    """Pixels at the clipping level in any channel."""
-    if image.ndim != 3:
-        return image >= SATURATION
-    mask = image[..., 0] >= SATURATION  # OR of channel comparisons: no (rows, cols, c) temporary
-    for c in range(1, image.shape[2]):
-        mask |= image[..., c] >= SATURATION
+    """Pixels at the clipping level (``>= SATURATION``) in any channel; a NaN counts as
+    clipped (nothing is known of it)."""
+    channels = 1 if image.ndim == 2 else image.shape[2]
+    if image.dtype == np.float32 and channels <= 4:
+        # one OpenCV pass, all channels at once (7 against 19 ms on 3 Mpx RGB): in range
+        # means every channel at most the float32 just below SATURATION
+        below = float(np.nextafter(np.float32(SATURATION), np.float32(-np.inf)))
+        ok = cv2.inRange(image, (-np.inf,) * channels, (below,) * channels)
+        return cv2.compare(ok, 0, cv2.CMP_EQ).view(bool)
+    with np.errstate(invalid="ignore"):
+        if image.ndim != 3:
+            return ~(image < SATURATION)
+        mask = ~(image[..., 0] < SATURATION)  # no (rows, cols, c) temporary
+        for c in range(1, image.shape[2]):
+            mask |= ~(image[..., c] < SATURATION)
     return mask
