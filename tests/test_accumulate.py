@@ -84,6 +84,7 @@ def test_clipping_in_one_channel_and_at_the_level_itself(dtype):
     expected = np.zeros((3, 4), bool)
     expected[0, 1] = expected[2, 3] = expected[1, 2] = expected[0, 3] = expected[2, 0] = True
     np.testing.assert_array_equal(clipped_pixels(image), expected)
+    assert clipped_pixels(image).view(np.uint8).max() == 1  # numpy's bools: bytes 0 and 1
     np.testing.assert_array_equal(clipped_pixels(image[..., 1]), expected & [[0, 1, 0, 0]] * 3)
     grey = np.array([[level, np.nextafter(level, dtype(0.0)), 1.0]], dtype)
     np.testing.assert_array_equal(clipped_pixels(grey), [[True, False, True]])
