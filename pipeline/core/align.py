@@ -922,16 +922,17 @@ def _remap_linear(image: np.ndarray, inverse: np.ndarray, size: tuple[int, int],
     cols, rows = size
     x = np.arange(cols, dtype=np.float64)
     affine = inverse[2, 0] == 0 and inverse[2, 1] == 0
-    terms = [(inverse[k, 0] * x).astype(np.float32)[None, :] for k in range(3)]
+    rows_of = 2 if affine else 3  # an affine H^-1's homogeneous coordinate is its constant
+    terms = [(inverse[k, 0] * x).astype(np.float32)[None, :] for k in range(rows_of)]
     out = np.empty((rows, cols, *image.shape[2:]), image.dtype)
     for r0 in range(0, rows, REMAP_STRIP_ROWS):
         y = np.arange(r0, min(rows, r0 + REMAP_STRIP_ROWS), dtype=np.float64)
-        u, v, w = (
+        u, v, *w = (
             terms[k] + (inverse[k, 1] * y + inverse[k, 2]).astype(np.float32)[:, None]
-            for k in range(3)
+            for k in range(rows_of)
         )
-        if not affine:
-            u, v = u / w, v / w
+        if w:
+            u, v = u / w[0], v / w[0]
         elif inverse[2, 2] != 1.0:
             u, v = u / np.float32(inverse[2, 2]), v / np.float32(inverse[2, 2])
         strip = cv2.remap(image, u, v, cv2.INTER_LINEAR, borderMode=border)
