@@ -33,6 +33,11 @@ STAGES = [
     ("pipeline.jobs.stack", "stack_kernel"),
     ("pipeline.jobs.stack", "accumulate"),
     ("pipeline.jobs.stack", "restore_image"),
+    # the steps that keep the result to the frames (issue 13; absent before stop 23)
+    ("pipeline.jobs.stack", "restore_ends"),
+    ("pipeline.jobs.stack", "keep_inner_detail"),
+    ("pipeline.jobs.stack", "quiet_flat_areas"),
+    ("pipeline.jobs.stack", "clip_to_frames"),
     ("pipeline.jobs.stack", "write_result"),
 ]
 
@@ -70,6 +75,9 @@ def run_once(checkout: Path, stack: str, out: Path) -> dict:
     proc = subprocess.run(
         [sys.executable, "-c", CHILD, json.dumps(STAGES), stack, str(out)],
         env=env,
+        # away from any checkout: ``python -c`` puts its working directory first on sys.path,
+        # ahead of PYTHONPATH (run from the repository, the baseline ran this checkout's code)
+        cwd=out.parent,
         capture_output=True,
         text=True,
         check=False,
@@ -88,12 +96,13 @@ def main(argv=None) -> int:
     checkouts = {"this": ROOT}
     if args.baseline:
         checkouts["baseline"] = args.baseline.resolve()
+    stack = str(Path(args.stack).resolve())  # the children run in a temporary directory
     runs: dict[str, list[dict]] = {name: [] for name in checkouts}
     with tempfile.TemporaryDirectory() as tmp:
         for r in range(args.rounds + 1):  # round 0 warms the caches and is dropped
             for name, checkout in checkouts.items():
                 out = Path(tmp) / f"{name}.tif"
-                spans = run_once(checkout, args.stack, out)
+                spans = run_once(checkout, stack, out)
                 if r:
                     runs[name].append(spans)
                 print(f"round {r} {name}: {spans['process'][1]:.2f} s", file=sys.stderr)
