@@ -162,19 +162,23 @@ class FrameSupport:
     def merge(self, other: FrameSupport) -> FrameSupport:
         """Fold ``other`` in, in place (on a tie of focus ``self``'s frame stays: the
         result depends on the frames' order into the merges, which is fixed)."""
-        if self.high is self.low:  # a single frame's statistics share one array
-            self.high = self.low.copy()
-            self.sharpest = None if self.sharpest is None else self.low.copy()
+        shared = self.high is self.low  # a single frame's statistics share one array
+        if shared and self.sharpest is not None:
+            self.sharpest = self.low.copy()
         # OpenCV, not numpy: multi-threaded, without the GIL beside the other lane, and
         # a masked copy with one mask for all channels (np.copyto's broadcast ``where``
-        # took 20 ms a frame on 3 Mpx RGB, cv2.copyTo 1.5 ms)
+        # took 20 ms a frame on 3 Mpx RGB, cv2.copyTo 1.5 ms). A shared bound's maximum
+        # goes to a new array before the minimum overwrites it: no copy first (a lane's
+        # first merge copied 3 Mpx of codes and of colour codes, 12 + 28 ms, faulting in
+        # fresh pages)
+        self.high = cv2.max(self.high, other.high, dst=None if shared else self.high)
         cv2.min(self.low, other.low, dst=self.low)
-        cv2.max(self.high, other.high, dst=self.high)
         if self.colour_low is not None and other.colour_low is not None:
-            if self.colour_high is self.colour_low:
-                self.colour_high = self.colour_low.copy()
+            shared = self.colour_high is self.colour_low
+            self.colour_high = cv2.max(
+                self.colour_high, other.colour_high, dst=None if shared else self.colour_high
+            )
             cv2.min(self.colour_low, other.colour_low, dst=self.colour_low)
-            cv2.max(self.colour_high, other.colour_high, dst=self.colour_high)
         # every frame's noise, the range-only statistics' too (before stop 42 they kept
         # only the first frame's: the noise limit read frame 0's, not the frames' median)
         self.noise = self.noise + other.noise

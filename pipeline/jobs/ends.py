@@ -504,8 +504,9 @@ def keep_end_detail(result, frame, weight, noise) -> float:
         band_own = cv2.subtract(fine_own, coarse_own)
         window = max(2.0, DETAIL_WINDOW * sigma)
         smooth = _Smooth(window, image.shape)
-        energy_image = smooth.down(cv2.pow(band_image, 2))
-        shown = smooth.down(cv2.pow(band_own, 2))
+        # squares by multiply: cv2.pow's bits in 0.6 of its time
+        energy_image = smooth.down(cv2.multiply(band_image, band_image))
+        shown = smooth.down(cv2.multiply(band_own, band_own))
         shown -= np.float32(DETAIL_NOISE * noise * noise * _band_noise_gain(fine_px, sigma))
         # DETAIL_GAIN (1 - E_result / E_shown), clipped to [0, 1]; 0 where E_shown <= 0
         take = cv2.divide(energy_image, np.maximum(shown, np.float32(1e-30)))

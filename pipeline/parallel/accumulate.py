@@ -57,14 +57,20 @@ def _warped_leaf(
     frame = read_frame(path, white=white)
     read_s = time.perf_counter() - t0
     scale = np.float32(1.0 / gain)
-    kept = {} if key is None else {key: np.multiply(mean_grey(frame), scale, dtype=np.float32)}
+    grey = mean_grey(frame) if key is not None or detail is not None else None
+    kept = {} if key is None else {key: np.multiply(grey, scale, dtype=np.float32)}
     sharp = None
     if detail is not None:
-        grey = mean_grey(frame)
         if homography is not None:
             grey = align.warp(grey, homography, shape, interpolation="cubic")
+        elif grey is frame:  # a grey frame is its own mean_grey: not changed in place
+            grey = grey.copy()
         where = cv2.resize(np.asarray(detail(), np.float32), (shape[1], shape[0]))
-        sharp = (np.multiply(grey, where * scale, dtype=np.float32), where)
+        if gain == 1.0:  # ``where * 1`` is ``where``: the same bits, without a temporary
+            np.multiply(grey, where, out=grey)
+        else:
+            grey = np.multiply(grey, where * scale, dtype=np.float32)
+        sharp = (grey, where)
     if homography is not None:
         frame = align.warp(frame, homography, shape)
     clipped = clipped_pixels(frame)
