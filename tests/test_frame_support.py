@@ -44,6 +44,42 @@ def _streamed(frames, order, full=True):
     return lanes[0].merge(lanes[1])
 
 
+@pytest.mark.parametrize("shape", [(600, 70, 3), (600, 70), (600, 70, 1), (300, 40, 4)])
+def test_frames_folded_by_strips_equal_brute_force(shape):
+    """add_frame (the accumulation's lanes, by strips of CLIP_STRIP_ROWS) against numpy's
+    min/max of every whole frame's codes (to_codes, checked on its own in this file): more
+    rows than a strip, a NaN, values beyond white and below black; the colour bounds
+    exactly as merging each frame's own statistics gives them (that path is checked
+    against brute force above); every frame's noise, in order."""
+    frames = [f * np.float32(1.3) - np.float32(0.1) for f in _frames(4, shape, seed=7)]
+    frames[1][290, 5] = np.nan
+    valid = np.ones(shape[:2], bool)
+    got = FrameSupport.of_frame(frames[0], valid, full=False)
+    merged = FrameSupport.of_frame(frames[0], valid, full=False)
+    for frame in frames[1:]:
+        got = got.add_frame(frame, valid)
+        merged = merged.merge(FrameSupport.of_frame(frame, valid, full=False))
+    codes = np.stack([fs.to_codes(f).reshape(shape) for f in frames])
+    assert got.high is not got.low
+    np.testing.assert_array_equal(got.low.reshape(shape), codes.min(axis=0))
+    np.testing.assert_array_equal(got.high.reshape(shape), codes.max(axis=0))
+    if len(shape) == 3 and shape[2] == 3:
+        assert got.colour_high is not got.colour_low
+        np.testing.assert_array_equal(got.colour_low, merged.colour_low)
+        np.testing.assert_array_equal(got.colour_high, merged.colour_high)
+    else:
+        assert got.colour_low is None
+    expected = [fs.frame_noise(f, valid, fs.LIMIT_NOISE_CROP_PX) for f in frames]
+    np.testing.assert_array_equal(np.array(got.noise), np.array(expected))
+
+
+def test_add_frame_refuses_full_statistics():
+    frames = _frames(2)
+    valid = np.ones(frames[0].shape[:2], bool)
+    with pytest.raises(ValueError, match="range-only"):
+        FrameSupport.of_frame(frames[0], valid).add_frame(frames[1], valid)
+
+
 @pytest.mark.parametrize("order", [[0, 1, 2, 3, 4], [4, 2, 0, 3, 1]])
 def test_streamed_range_and_sharpest_equal_brute_force(order):
     frames = _frames()

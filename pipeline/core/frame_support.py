@@ -162,6 +162,34 @@ class FrameSupport:
         noise = [frame_noise(frame, valid)]
         return cls(codes, codes, focus_measure(codes), codes, noise, colour, colour)
 
+    def add_frame(self, frame: np.ndarray, valid: np.ndarray) -> FrameSupport:
+        """Fold one more frame into range-only statistics, in place: the same as
+        ``self.merge(FrameSupport.of_frame(frame, valid, full=False))``, but by strips of
+        ``CLIP_STRIP_ROWS`` rows, each strip's codes folded in while in cache, without the
+        frame's own full-size code arrays (pcb7: 12 + 25 MB a frame, made and then folded
+        in)."""
+        if self.focus is not None:
+            raise ValueError("add_frame folds range-only statistics (full=False) only")
+        folds = [(self.low, self.high, to_codes)]
+        if frame.ndim == 3 and frame.shape[2] == 3 and self.colour_low is not None:
+            folds.append((self.colour_low, self.colour_high, colour_codes))
+        bounds = []
+        for low, high, codes_of in folds:
+            # a single frame's statistics share one array: the maxima go to a new one
+            new_high = np.empty_like(low) if high is low else high
+            low_rows, high_rows, new_rows = (_by_rows(a) for a in (low, high, new_high))
+            for r0 in range(0, frame.shape[0], CLIP_STRIP_ROWS):
+                rows = slice(r0, r0 + CLIP_STRIP_ROWS)
+                codes = _by_rows(codes_of(frame[rows]))
+                cv2.max(high_rows[rows], codes, dst=new_rows[rows])  # before the minimum
+                cv2.min(low_rows[rows], codes, dst=low_rows[rows])
+            bounds.append(new_high)
+        self.high = bounds[0]
+        if len(bounds) > 1:
+            self.colour_high = bounds[1]
+        self.noise = [*self.noise, frame_noise(frame, valid, LIMIT_NOISE_CROP_PX)]
+        return self
+
     def merge(self, other: FrameSupport) -> FrameSupport:
         """Fold ``other`` in, in place (on a tie of focus ``self``'s frame stays: the
         result depends on the frames' order into the merges, which is fixed)."""
@@ -195,6 +223,13 @@ class FrameSupport:
     def median_noise(self) -> np.ndarray:
         """The frames' median noise std per channel."""
         return np.median(np.array(self.noise, dtype=np.float64), axis=0)
+
+
+def _by_rows(codes: np.ndarray) -> np.ndarray:
+    """A view of a code array as OpenCV returns one: (rows, cols) for a single channel,
+    (rows, cols, c) otherwise (a (rows, cols, 1) frame's codes come back 2-D)."""
+    flat = codes.reshape(codes.shape[0], codes.shape[1], -1)
+    return flat[..., 0] if flat.shape[2] == 1 else flat
 
 
 def _grey(image: np.ndarray) -> np.ndarray:

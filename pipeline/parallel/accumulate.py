@@ -38,6 +38,7 @@ def _warped_leaf(
     key=None,
     detail=None,
     gain=1.0,
+    into=None,
 ):
     """Read one frame (with white level ``white``, :func:`pipeline.io.read.read_frame`),
     warp it onto the reference, divide it by its exposure ``gain``
@@ -51,7 +52,9 @@ def _warped_leaf(
     grey image warped bicubic (fine detail kept, see :func:`pipeline.core.align.warp`) and
     divided by ``gain``, times the map brought to ``shape``, and that map (else ``None``).
 
-    ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7).
+    ``weight`` is a number, or one weight per row (per-row DOFs, Secs. 6-7). ``into``:
+    range-only statistics of earlier frames, into which this frame's are folded
+    (:meth:`~pipeline.core.frame_support.FrameSupport.add_frame`) and returned.
     """
     t0 = time.perf_counter()
     frame = read_frame(path, white=white)
@@ -76,7 +79,12 @@ def _warped_leaf(
     clipped = clipped_pixels(frame)
     if gain != 1.0:
         frame *= scale
-    stats = FrameSupport.of_frame(frame, ~clipped, full=support == "full") if support else None
+    if into is not None:  # the lane's range-only statistics, this frame folded in
+        stats = into.add_frame(frame, ~clipped)
+    elif support:
+        stats = FrameSupport.of_frame(frame, ~clipped, full=support == "full")
+    else:
+        stats = None
     if np.ndim(weight) == 0:
         frame *= np.float32(weight)
     else:
@@ -93,7 +101,10 @@ def _merge(a, b):
         sharp = a[5] if b[5] is None else b[5]
     else:
         sharp = tuple(np.add(mine, theirs, out=mine) for mine, theirs in zip(a[5], b[5]))
-    stats = None if a[3] is None else a[3].merge(b[3])
+    if a[3] is None or b[3] is a[3]:  # none, or b's frame already folded into a's
+        stats = a[3]
+    else:
+        stats = a[3].merge(b[3])
     return a[0], a[1], a[2] + b[2], stats, a[4] | b[4], sharp
 
 
@@ -111,7 +122,9 @@ def _add_frame(
 ):
     """One step of a lane: frame ``path`` warped and weighted (:func:`_warped_leaf`),
     added to the lane's running sum ``partial`` (``None`` for the lane's first frame)."""
-    leaf = _warped_leaf(path, homography, weight, shape, support, white, key, detail, gain)
+    # range-only statistics fold the frame into the lane's own (no per-frame code arrays)
+    into = partial[3] if partial is not None and support == "range" else None
+    leaf = _warped_leaf(path, homography, weight, shape, support, white, key, detail, gain, into)
     return leaf if partial is None else _merge(partial, leaf)
 
 
