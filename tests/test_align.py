@@ -190,7 +190,7 @@ def test_warp_identity_returns_input(rows, cols, channels, dtype):
         np.testing.assert_allclose(out, x, rtol=1e-6, atol=1e-6)
 
 
-@pytest.mark.parametrize("channels", [0, 3, 5])
+@pytest.mark.parametrize("channels", [0, 1, 3, 4, 5])  # (r, c, 1) is written as 2-D rows
 def test_warp_matches_bilinear_reference(channels):
     rng = np.random.default_rng(1)
     shape = (60, 80) if channels == 0 else (60, 80, channels)

@@ -107,15 +107,12 @@ def colour_codes(image: np.ndarray) -> np.ndarray:
         strip = np.ascontiguousarray(image[r0 : r0 + CLIP_STRIP_ROWS], dtype=np.float32)
         red, green, blue = cv2.split(strip)
         total = cv2.add(cv2.add(cv2.add(red, green), blue), 3.0 * floor)
-        view = out[r0 : r0 + CLIP_STRIP_ROWS]
-        merged = cv2.merge([
+        cv2.merge([
             cv2.divide(cv2.add(red, floor), total, scale=top, dtype=cv2.CV_16U),
             cv2.divide(cv2.add(blue, floor), total, scale=top, dtype=cv2.CV_16U),
             cv2.addWeighted(red, 0.5 * top, green, -0.5 * top, 0.5 * top, dtype=cv2.CV_16U),
             cv2.addWeighted(blue, 0.5 * top, green, -0.5 * top, 0.5 * top, dtype=cv2.CV_16U),
-        ], dst=view)  # straight into the output's rows
-        if merged is not view:  # OpenCV could not write into the view: copied instead
-            view[...] = merged
+        ], dst=out[r0 : r0 + CLIP_STRIP_ROWS])  # straight into the output's rows
     return out
 
 
