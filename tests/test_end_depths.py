@@ -313,8 +313,11 @@ def test_the_end_frame_decides_each_band_of_the_correction(tmp_path, sharp, span
     band than the model's kernel adds; checked as one band with at most all of it (the
     check before stop 31) the far plane stayed below (measured 30.02 and 31.20 dB), with
     its bands checked each on its own and scaled up to what the frame shows, 31.42 and
-    33.82 dB (``jobs.ends._correction_bands``)."""
+    33.82 dB (``jobs.ends._correction_bands``). Both are measured without the end frame's
+    range after them (stop 44, ``jobs.ends.keep_to_end_frames``), which takes the bars'
+    rings out: 33.14 -> 34.26 and 34.33 -> 35.67 dB on the far plane now."""
     from pipeline.jobs import ends
+    from pipeline.jobs import stack as stack_job
 
     scene = sharp.copy()
     rng = np.random.default_rng(3)
@@ -327,20 +330,27 @@ def test_the_end_frame_decides_each_band_of_the_correction(tmp_path, sharp, span
     span = span_share * float(load_lens(LENS).blur_px(positions.max(), positions.min()))
     far = (slice(16, -16), slice(2 * 256 // 3 + 8, 256 - 8))
 
-    def run(name):
+    def run(name, mp=None):
+        if mp is not None:  # the bands' own effect: without the end frame's range after them
+            mp.setattr(stack_job, "keep_to_end_frames", lambda result, ranges: 0.0)
         options = StackOptions(encoding="float32", blur_span_px=span)
         return process_stack(tmp_path, tmp_path / name, options).image
 
-    split = run("split.tif")
-    with pytest.MonkeyPatch.context() as mp:  # the correction checked as one band
-        mp.setattr(
+    kept = run("kept.tif")
+    with pytest.MonkeyPatch.context() as mp:
+        split = run("split.tif", mp)
+        mp.setattr(  # the correction checked as one band
             ends,
             "_correction_bands",
             lambda small: [(small, ends.AGREEMENT_SIGMA_PX, 1.0), (0 * small, 1.0, 1.0)],
         )
-        one = run("one.tif")
+        one = run("one.tif", mp)
     assert psnr(split[far], scene[far]) > psnr(one[far], scene[far]) + 1.0
-    assert psnr(split, scene) > psnr(one, scene) + 0.2  # measured +0.52 and +0.40 dB
+    assert psnr(split, scene) > psnr(one, scene) + 0.2  # measured +0.54 and +0.32 dB
+    # the end frame's range after them (ends.keep_to_end_frames): measured +1.12 and +1.34 dB
+    # on the far plane, +0.26 and +0.39 over the image
+    assert psnr(kept[far], scene[far]) > psnr(split[far], scene[far]) + 0.8
+    assert psnr(kept, scene) > psnr(split, scene) + 0.15
 
 
 def test_the_end_correction_does_not_ring_across_occlusion_edges(tmp_path, sharp):

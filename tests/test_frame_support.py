@@ -396,6 +396,7 @@ def test_the_main_job_stays_within_the_frames_unless_told_not_to(tmp_path):
         "flat_fraction",
         "beyond_ends",
         "inner_detail_kept",
+        "end_range_moved",
     }
     assert "frame_range" not in unclipped.sidecar and "frame_range" not in guarded.sidecar
 

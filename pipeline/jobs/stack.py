@@ -43,7 +43,13 @@ from pipeline.errors import InputError
 from pipeline.io.profiles import load_lens
 from pipeline.io.read import read_preview
 from pipeline.io.stackfile import Stack, check_frames, image_distances_mm, load_stack
-from pipeline.jobs.ends import correction_factor, end_kernels, reduced_size, restore_ends
+from pipeline.jobs.ends import (
+    correction_factor,
+    end_kernels,
+    keep_to_end_frames,
+    reduced_size,
+    restore_ends,
+)
 from pipeline.jobs.frame_detail import away_from_other_depths, detail_maps, keep_inner_detail
 from pipeline.jobs.multiframe import restore_multiframe
 from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
@@ -761,13 +767,14 @@ def process_stack(
             "noise_ceiling": None if ceiling is None else [float(v) for v in ceiling],
         }
     elif frames is not None:
-        ends = restore_ends(
+        ends, end_ranges = restore_ends(
             result,
             average,
             beyond,
             kernel,
             read_frame=lambda i, box: _aligned_frame(aligned, i, box, kept),
             clipped=clipped,
+            exposures=None if aligned.gains is not None else aligned.exposures,  # as shot
         )
         for end in ends:
             end["frame"] = stack.files[end["frame"]].name
@@ -778,9 +785,14 @@ def process_stack(
             away = away_from_other_depths(inner, span / factor, factor)
             inner_kept = keep_inner_detail(result, sharp, away, clipped)
         result, flat = quiet_flat_areas(result, average, frames)
-        result = clip_to_frames(result, frames, clipped)  # last: nothing leaves the range
+        result = clip_to_frames(result, frames, clipped)  # nothing leaves the range
+        end_kept = keep_to_end_frames(result, end_ranges)  # nor the end frame's, at an end
         timings["frame_range"] = time.perf_counter() - t0
-        sidecar["frame_range"] = {"flat_fraction": round(flat, 4), "beyond_ends": ends}
+        sidecar["frame_range"] = {
+            "flat_fraction": round(flat, 4),
+            "beyond_ends": ends,
+            "end_range_moved": round(end_kept, 4),
+        }
         if inner_kept is not None:
             sidecar["frame_range"]["inner_detail_kept"] = round(inner_kept, 4)
     progress("deconvolve", 1, 1)

@@ -38,6 +38,7 @@ STAGES = [
     ("pipeline.jobs.stack", "keep_inner_detail"),
     ("pipeline.jobs.stack", "quiet_flat_areas"),
     ("pipeline.jobs.stack", "clip_to_frames"),
+    ("pipeline.jobs.stack", "keep_to_end_frames"),
     ("pipeline.jobs.stack", "write_result"),
 ]
 
