@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from pipeline.core import align
-from pipeline.core.colour import linear_to_srgb, mean_grey
+from pipeline.core.colour import linear_to_srgb, mean_grey, move_grey
 from pipeline.io.read import read_frame
 from pipeline.jobs.ends import EndRange, keep_end_detail, keep_to_end_frames, restore_ends
 from pipeline.jobs.stack import process_stack
@@ -165,18 +165,25 @@ def test_restore_ends_leaves_clipped_pixels_and_reports_the_share():
     np.testing.assert_allclose(dim.high, kept.high / 1.25, rtol=1e-6)
 
 
+def _stacked_and_last_frame(files, folder):
+    """The main job's result of ``files``, its sidecar, and the last frame warped onto the
+    result by the sidecar's own homography."""
+    out = folder / "result.tif"
+    process_stack(files, out)
+    result = read_frame(out)
+    side = json.loads(out.with_name(out.name + ".json").read_text())
+    last = align.warp(read_frame(files[-1]), np.array(side["frames"][-1]["homography"]),
+                      result.shape)
+    return result, side, last
+
+
 def test_beetles_shell_beyond_its_last_frame_is_as_detailed_as_that_frame(tmp_path, shared_data):
     """The shell at the top of beetle lies beyond the last frame (0.09 of the range by the
     end fit, more at the top): before, the result's 1-4 px band there held 0.79 of the
     frame's; the end frame's detail brings it to at least 0.95, without adding grain in the
     dark background."""
     files = sorted((shared_data / "chimpstackr-beetle").glob("DSC_*.jpg"))
-    out = tmp_path / "beetle.tif"
-    process_stack(files, out)
-    result = read_frame(out)
-    side = json.loads(out.with_name(out.name + ".json").read_text())
-    last = align.warp(read_frame(files[-1]), np.array(side["frames"][-1]["homography"]),
-                      result.shape)
+    result, side, last = _stacked_and_last_frame(files, tmp_path)
     shell = np.s_[10:160, 260:490]
 
     def band(image, box):
@@ -192,7 +199,10 @@ def test_beetles_shell_beyond_its_last_frame_is_as_detailed_as_that_frame(tmp_pa
 
 def test_dark_and_undershooting_pixels_are_not_blown_up():
     """A deconvolved result dips below 0 near dark edges: scaling its channels by the grey
-    image's change would multiply them by thousands there; the gain is bounded."""
+    image's change would multiply them by thousands there, or (a ratio to a floor, until
+    stop 44) move them the wrong way. Where the grey image is at or below 0 the frame's
+    detail is added to every channel alike, and nowhere is a change larger than the
+    frame's own detail."""
     grey = _texture(17)
     frame = np.repeat(grey[..., None], 3, axis=2)
     result = np.repeat(cv2.GaussianBlur(grey, (0, 0), 2.5)[..., None], 3, axis=2)
@@ -200,7 +210,13 @@ def test_dark_and_undershooting_pixels_are_not_blown_up():
     out = result.copy()
     keep_end_detail(out, frame, np.ones(grey.shape, np.float32), noise=0.0)
     assert np.all(np.isfinite(out))
-    assert out.min() > -0.05 and out.max() < 1.5
+    change = out - result
+    block = change[40:60, 40:60]
+    np.testing.assert_allclose(block[..., 0], block[..., 2], atol=1e-6)  # alike
+    np.testing.assert_allclose(block[..., 1], block[..., 2], atol=1e-6)
+    assert np.abs(block).max() > 0.01  # the frame's detail did arrive
+    detail = np.abs(grey - cv2.GaussianBlur(grey, (0, 0), 8.0)).max()
+    assert np.abs(change).max() < 1.5 * detail and out.max() < 1.5
 
 
 @pytest.mark.parametrize(("shift_px", "gain"), [(0.0, 0.3), (0.5, 0.5), (1.0, 0.8)])
@@ -321,12 +337,7 @@ def test_pcb7s_far_bars_are_as_dark_as_its_last_frame_shows_them(tmp_path, share
     mean over the rows) stood up to 10.8 levels from the frame's, 7.0 levels rms from the
     frame over the box; with it, measured 6.2 and 4.9."""
     files = sorted((shared_data / "focusstack-pcb" / "pcb7").glob("pcb_*.jpg"))
-    out = tmp_path / "pcb7.tif"
-    process_stack(files, out)
-    result = read_frame(out)
-    side = json.loads(out.with_name(out.name + ".json").read_text())
-    last = align.warp(read_frame(files[-1]), np.array(side["frames"][-1]["homography"]),
-                      result.shape)
+    result, side, last = _stacked_and_last_frame(files, tmp_path)
     box = np.s_[150:400, 1440:1640]
 
     def levels(image):
@@ -338,3 +349,30 @@ def test_pcb7s_far_bars_are_as_dark_as_its_last_frame_shows_them(tmp_path, share
     assert profile.max() < 8 and rms < 5.5, (profile.max(), rms)
     assert side["frame_range"]["end_range_moved"] > 0.05
     assert np.std(got) > 0.95 * np.std(seen)  # as contrasted as the frame (not flattened)
+
+
+@pytest.mark.parametrize("channels", [None, 1, 3, 4])
+def test_move_grey_reaches_the_target_keeping_the_hue_where_it_can(channels):
+    """The grey image becomes the target in any channel layout; where the gain stays in
+    [0, max_gain] every channel is scaled alike (the hue stays), elsewhere the rest is
+    added alike; negative and black pixels get finite values."""
+    rng = np.random.default_rng(5)
+    shape = (24, 30) if channels is None else (24, 30, channels)
+    image = rng.uniform(0.05, 0.9, shape).astype(np.float32)
+    image[:3] = -0.02  # an undershoot
+    image[3:5] = 0.0
+    grey = np.array(mean_grey(image), np.float32)
+    target = (grey * rng.uniform(0.2, 6.0, grey.shape) + 0.01).astype(np.float32)
+    out = image.copy()
+    move_grey(out, grey, target, max_gain=4.0)
+    assert np.all(np.isfinite(out))
+    np.testing.assert_allclose(mean_grey(out), target, atol=1e-5)
+    ratio = target / np.where(grey > 0, grey, 1)
+    scaled = (grey > 0) & (ratio <= 4.0)
+    assert scaled.mean() > 0.3  # the case
+    if channels is not None:
+        expect = image * ratio[..., None]
+        np.testing.assert_allclose(out[scaled], expect[scaled], rtol=1e-4, atol=1e-6)
+        gain = np.where(grey > 0, np.clip(ratio, 0, 4), 1)  # none where the grey is <= 0
+        rest = out[~scaled] - image[~scaled] * gain[~scaled][..., None]
+        np.testing.assert_allclose(rest, np.repeat(rest[:, :1], channels, axis=1), atol=1e-5)
