@@ -431,16 +431,17 @@ def keep_to_end_frames(result: np.ndarray, ranges: list[EndRange]) -> float:
     (:func:`restore_ends`' ``exposures``): beetle's flash-lit frames differ by 0.75-1.26,
     and its frames as shot moved 14% of the image at a 1 px slack, at the stack's exposure 3%.
 
-    The grey image's excess over ``[low, high]`` is taken off by scaling every channel, so
-    the hue stays (by at most ``MAX_DETAIL_GAIN``, as :func:`keep_end_detail`; the rest, and
-    all of it where the grey image is at or below 0, by adding the same to every channel),
-    by each pixel's weight ``w``: the grey image becomes ``g + w (clip(g, low, high) - g)``. It runs
-    after :func:`clip_to_frames`: a grey image scaled into the end frame's range before it
-    kept the result's hue, which the clip's per-channel bounds then moved out of that range
-    (dark edges 15 levels lighter than the frame's). Measured on pcb7's far bars
+    The grey image's excess over ``[low, high]`` is taken off by each pixel's weight ``w``
+    (the grey image becomes ``g + w (clip(g, low, high) - g)``), by scaling every channel
+    so the hue stays, at most by ``MAX_DETAIL_GAIN`` as :func:`keep_end_detail`; the rest,
+    and all of it where the grey image is at or below 0, is added to every channel
+    (:func:`pipeline.core.colour.move_grey`). It runs after :func:`clip_to_frames`: a grey
+    image scaled into the end frame's range before it kept the result's hue, which the
+    clip's per-channel bounds then moved out of that range (dark edges 15 levels lighter
+    than the frame's). Measured on pcb7's far bars
     (``tests/benchmarks/results/real_regions/NOTE.md``, part 22): 7.0 -> 4.9 levels rms
     from the last frame, the column profile's largest distance from the frame's 10.8 ->
-    6.2 levels, the light line gone.
+    6.3 levels, the light line gone.
     """
     moved = total = 0.0
     for end in ranges:
