@@ -274,8 +274,8 @@ def _frame_range(frame, weight) -> EndRange:
 def test_a_ring_inside_a_bar_leaves_and_the_rest_stays():
     """pcb7's far bars (NOTE part 22): the end correction rang a light line down the middle
     of each wide bar, which the other frames' range let stand. Kept to the end frame's own
-    range over 3x3, the line goes; pixels already in range are not touched; where the
-    weight is 0 nothing changes, where it is 0.5 half the excess goes."""
+    range (here over 3x3; the job's is 5x5), the line goes; pixels in range are not
+    touched; where the weight is 0 nothing changes, where it is 0.5 half the excess goes."""
     frame = _bars()
     result = frame.copy()
     result[:, 33:36] += 0.25  # the light line inside the 9 px bar (columns 30-38)

@@ -67,8 +67,9 @@ def mean_grey(image: np.ndarray) -> np.ndarray:
 
 
 def move_grey(image: np.ndarray, grey: np.ndarray, target: np.ndarray, *, max_gain: float) -> None:
-    """Change ``image`` (in place, float32, ``(rows, cols)`` or ``(rows, cols, channels)``)
-    so that its grey image ``grey`` (its :func:`mean_grey`, float32) becomes ``target``.
+    """Change ``image`` (in place; ``(rows, cols)`` or ``(rows, cols, channels)``) so that
+    its grey image ``grey`` (its :func:`mean_grey`) becomes ``target``; all three float32,
+    or all float64.
 
     Every channel is scaled by ``target / grey``, so the hue stays, within ``[0, max_gain]``
     (a dark pixel's channels are not multiplied by thousands, nor their signs flipped); what
@@ -76,14 +77,14 @@ def move_grey(image: np.ndarray, grey: np.ndarray, target: np.ndarray, *, max_ga
     undershoot, whose channels a ratio would move the wrong way), is added to every channel
     alike. The grey image is then ``target`` to rounding (:func:`mean_grey` is linear).
     """
-    positive = grey > 0
-    ratio = np.divide(target, grey, out=np.ones_like(grey), where=positive)
-    np.clip(ratio, 0.0, np.float32(max_gain), out=ratio)
-    offset = cv2.subtract(target, cv2.multiply(ratio, grey))
-    np.subtract(ratio, np.float32(1.0), out=ratio)
+    raw = cv2.divide(target, grey)  # 0 where grey is 0
+    ratio = np.clip(raw, 0.0, max_gain)
+    ratio[grey <= 0] = 1.0  # no ratio of an undershoot's channels: all of it added
+    rest = np.nonzero(ratio != raw)  # where the scale does not reach the target: few pixels
+    offset = target[rest] - ratio[rest] * grey[rest]
     if image.ndim == 3:
-        channels = image.shape[2]
-        ratio = cv2.merge([ratio] * channels).reshape(image.shape)
-        offset = cv2.merge([offset] * channels).reshape(image.shape)
-    np.add(image, cv2.multiply(ratio, image).reshape(image.shape), out=image)
-    np.add(image, offset, out=image)
+        np.multiply(image, cv2.merge([ratio] * image.shape[2]).reshape(image.shape), out=image)
+        image[rest] += offset[:, None]
+    else:
+        np.multiply(image, ratio, out=image)
+        image[rest] += offset
