@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from scipy import ndimage
 
 from pipeline.core import align
-from pipeline.core.colour import linear_to_srgb, mean_grey, move_grey
+from pipeline.core.colour import STRIP_ROWS, linear_to_srgb, mean_grey, move_grey, scale_channels
 from pipeline.io.read import read_frame
 from pipeline.jobs.ends import EndRange, keep_end_detail, keep_to_end_frames, restore_ends
 from pipeline.jobs.stack import process_stack
@@ -349,6 +349,30 @@ def test_pcb7s_far_bars_are_as_dark_as_its_last_frame_shows_them(tmp_path, share
     assert profile.max() < 8 and rms < 5.5, (profile.max(), rms)
     assert side["frame_range"]["end_range_moved"] > 0.05
     assert np.std(got) > 0.95 * np.std(seen)  # as contrasted as the frame (not flattened)
+
+
+@pytest.mark.parametrize("channels", [None, 1, 3, 4])
+def test_scale_channels_gives_numpys_broadcast_products_in_place(channels):
+    """Every channel times the weight, bit for bit as numpy's broadcast, on a view that is
+    neither contiguous nor a whole number of strips (the end correction's box), the
+    pixels outside the view untouched; a weight in float64 too."""
+    rng = np.random.default_rng(11)
+    rows = 2 * STRIP_ROWS + 7
+    shape = (rows, 50) if channels is None else (rows, 50, channels)
+    whole = rng.uniform(-1, 2, shape).astype(np.float32)
+    before = whole.copy()
+    view = whole[5:, 3:41]
+    for dtype in (np.float32, np.float64):
+        weight = rng.uniform(0, 3, (rows + 4, 60)).astype(dtype)[9:, 7:45]  # a view too
+        start = view.copy()
+        expect = start * (weight if channels is None else weight[..., None])
+        out = scale_channels(view, weight)
+        assert out is view
+        np.testing.assert_array_equal(view, expect.astype(np.float32))
+        assert not np.array_equal(view, start)  # it changed something
+    outside = np.ones(whole.shape[:2], bool)
+    outside[5:, 3:41] = False
+    np.testing.assert_array_equal(whole[outside], before[outside])
 
 
 @pytest.mark.parametrize("channels", [None, 1, 3, 4])

@@ -35,6 +35,7 @@ import dataclasses
 import cv2
 import numpy as np
 
+from pipeline.core.colour import scale_channels
 from pipeline.core.deconvolve.common import noise_sigma_2d
 
 # smoothing of the squared Laplacian (the per-pixel focus measure): wide enough that
@@ -519,8 +520,6 @@ def quiet_flat_areas(
     alpha[_reduced(beyond.astype(np.float32), ENERGY_BLOCK_PX) > 0] = 0.0
     alpha = cv2.GaussianBlur(alpha, (0, 0), FLAT_BLEND_PX / ENERGY_BLOCK_PX)
     alpha = cv2.resize(alpha, (image.shape[1], image.shape[0]), interpolation=cv2.INTER_LINEAR)
-    if image.ndim == 3:
-        alpha = alpha[..., None]
     reach = int(np.ceil(4 * FLAT_NOISE_BAND_PX))  # rows the band's Gaussian reads around a strip
     rows = image.shape[0]
     above = None  # the rows above the strip as they were before the last strip changed them
@@ -535,7 +534,7 @@ def quiet_flat_areas(
         noise -= cv2.GaussianBlur(noise, (0, 0), FLAT_NOISE_BAND_PX, borderType=cv2.BORDER_REFLECT)
         above = image[max(0, r1 - reach) : r1].copy()
         band = noise[r0 - a0 : r1 - a0]
-        image[r0:r1] += np.multiply(band, alpha[r0:r1], out=band)  # no strip-size temporary
+        image[r0:r1] += scale_channels(band, alpha[r0:r1])  # no strip-size temporary
     return image, float(np.mean(alpha > 0.5))
 
 

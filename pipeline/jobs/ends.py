@@ -47,7 +47,7 @@ import numpy as np
 from scipy import fft as sfft
 
 from pipeline.core import defocus, spectra
-from pipeline.core.colour import mean_grey, move_grey
+from pipeline.core.colour import mean_grey, move_grey, scale_channels
 from pipeline.core.frame_support import frame_noise
 from pipeline.core.stack_kernel import depth_kernel, frame_kernels
 from pipeline.errors import InputError
@@ -367,9 +367,7 @@ def restore_ends(
                 delta = cv2.resize(band, shape[::-1], interpolation=cv2.INTER_CUBIC)
                 delta = delta.reshape(result.shape)[box]
                 # in place: no full-size temporaries (14 ms less a band on 3 Mpx RGB)
-                blend_box = blend[box, :, None] if result.ndim == 3 else blend[box]
-                np.multiply(delta, blend_box, out=delta)
-                np.add(result[box], delta, out=result[box])
+                np.add(result[box], scale_channels(delta, blend[box]), out=result[box])
         blends.append(kept[0])  # the end frame's detail: where the fine band is kept
         total = max(float(np.sum(weight)), 1e-9)
         report.append(
