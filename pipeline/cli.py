@@ -77,9 +77,21 @@ def tune_process() -> None:
       on that, 0.25-0.55 s without it, and 3.2 s instead of 3.5 s of wall time (median
       of 4 paired runs), peak memory unchanged (410-460 MiB). Forcing small buffers out
       to ``mmap`` instead (threshold 128 KiB) cost +0.6 s of system CPU on pcb7.
+    * No transparent huge pages for numpy's buffers (``NUMPY_MADVISE_HUGEPAGE`` 0): numpy
+      asks the kernel for huge pages on every large array, and where the kernel then
+      compacts memory to find them on the first touch (``defrag`` ``madvise``, the
+      default of Debian and Ubuntu), each of the guards' full-size temporaries costs a
+      compaction: pcb7 spent 1.1-2.0 s of system CPU, 0.7-0.8 s without, and 4.0-4.2
+      instead of 4.6-4.7 s of wall time (three paired runs); user CPU and peak memory
+      the same. A numpy already imported is switched at once.
     Skipped where libc is not glibc.
     """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
+    numpy = sys.modules.get("numpy")
+    switch = getattr(getattr(numpy, "_core", None), "multiarray", None)
+    if switch is not None and hasattr(switch, "_set_madvise_hugepage"):
+        switch._set_madvise_hugepage(os.environ["NUMPY_MADVISE_HUGEPAGE"] != "0")
     try:
         libc = ctypes.CDLL("libc.so.6")
         libc.mallopt(-8, 1)  # M_ARENA_MAX
