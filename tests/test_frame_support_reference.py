@@ -204,6 +204,19 @@ def test_codes_span_the_full_16_bit_range():
     np.testing.assert_array_equal(fs.from_codes(np.array([[0, 65535]], np.uint16)), [[0, 1]])
 
 
+def test_every_code_reads_back_as_its_value_rounded_to_float32():
+    """``from_codes`` of every 16-bit code is ``code / 65535`` taken in float64 and rounded
+    to float32 (what OpenCV's scaled conversion gave), in any layout; back through
+    ``to_codes`` each is the same code."""
+    codes = np.arange(fs.CODE_MAX + 1, dtype=np.uint16)
+    want = (codes.astype(np.float64) / fs.CODE_MAX).astype(np.float32)
+    for shape in ((256, 256), (128, 128, 4), (64, 1024, 1)):
+        got = fs.from_codes(codes.reshape(shape))
+        assert got.dtype == np.float32 and got.shape == shape
+        np.testing.assert_array_equal(got.ravel(), want)
+    np.testing.assert_array_equal(fs.to_codes(want.reshape(256, 256)).ravel(), codes)
+
+
 def test_a_wider_neighbourhood_is_a_wider_min_max_filter():
     """``radius_px=3``: the range over 7 x 7 pixels (scipy's min/max filters)."""
     rng = np.random.default_rng(5)

