@@ -197,10 +197,11 @@ def test_the_range_is_widened_by_one_code_each_way():
 
 def test_codes_span_the_full_16_bit_range():
     """0 and 1 are codes 0 and 65535 (nearest rounding between), white and beyond (and an
-    overflow to infinity) saturate at 65535, negatives at 0."""
-    values = np.float32([[0.0, 0.25, 0.5, 1.0, 1.5, np.inf, -0.1]])
+    overflow to infinity) saturate at 65535, negatives (and an overflow to minus infinity)
+    at 0, a NaN (nothing known) is the open end code 65535."""
+    values = np.float32([[0.0, 0.25, 0.5, 1.0, 1.5, np.inf, -0.1, -1e38, np.nan]])
     np.testing.assert_array_equal(fs.to_codes(values),
-                                  [[0, 16384, 32768, 65535, 65535, 65535, 0]])
+                                  [[0, 16384, 32768, 65535, 65535, 65535, 0, 0, 65535]])
     np.testing.assert_array_equal(fs.from_codes(np.array([[0, 65535]], np.uint16)), [[0, 1]])
 
 

@@ -64,18 +64,26 @@ CLIP_STRIP_ROWS = 256  # rows per strip of the clip (a strip's bounds: 2 x 6 MB 
 
 
 def to_codes(image: np.ndarray) -> np.ndarray:
-    """``round(image * 65535)`` saturated to uint16 (values beyond 1 are capped first:
-    OpenCV's saturation takes an overflow to infinity to 0).
+    """``round(image * 65535)`` saturated to uint16: values beyond 1 (and infinity) are
+    capped first, negative ones give 0, a NaN (nothing known) the end code 65535.
 
-    The product is rounded as OpenCV computes it: in double under OpenCV 5.0, in float32
-    under 5.1, where a product within half a float32 ulp (2**-9 code) of a half code rounds
-    to either side of it (0.13% of uniform values), so a code is at most 0.502 codes off.
+    The product is taken in the image's precision (float32 for frames) and rounded half to
+    even: the bits of OpenCV 5.1's ``cv2.multiply(image, 65535, dtype=CV_16U)`` (checked
+    on 20 Mpx of uniform values and on every half code and its neighbours), in half its
+    time (1.2 against 2.3 ms on 256 rows of 2048 px RGB: OpenCV's scaled conversion to 16
+    bits has no fast path). A product within half a float32 ulp (2**-9 code) of a half
+    code rounds to either side of it, so a code is at most 0.502 codes off.
     """
     # the cap is a full-frame copy (8 ms on 3 Mpx RGB); decoded frames never exceed 1
-    # (a 1 ms check), and a NaN maximum takes the capping path as before
+    # (a 1 ms check), and a NaN maximum takes the capping path
     if not np.max(image) <= 1.0:
-        image = np.minimum(image, np.float32(1.0), dtype=np.float32)
-    return cv2.multiply(image, float(CODE_MAX), dtype=cv2.CV_16U)
+        image = np.nan_to_num(np.minimum(image, np.float32(1.0), dtype=np.float32), nan=1.0)
+    dtype = np.float64 if image.dtype == np.float64 else np.float32
+    with np.errstate(over="ignore"):  # -1e38 * 65535 is -inf: code 0, as it should be
+        product = np.multiply(image, dtype(CODE_MAX), dtype=dtype)
+    np.rint(product, out=product)
+    np.clip(product, 0, CODE_MAX, out=product)
+    return product.astype(np.uint16)
 
 
 def from_codes(codes: np.ndarray) -> np.ndarray:
