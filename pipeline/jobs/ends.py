@@ -218,8 +218,12 @@ def _reduced_correction(average, end_kernel, stack_kernel, factor: int) -> np.nd
     small = small if small.ndim == 3 else small[..., None]
     ke, k0 = (_reduced_kernel(k, factor) for k in (end_kernel, stack_kernel))
     pad = max(ke.shape[0], k0.shape[0])  # reflect: no wrap-around at the borders
-    padded = np.pad(small, ((pad, pad), (pad, pad), (0, 0)), mode="reflect")
-    grid = padded.shape[:2]
+    # ... and on to a fast FFT size (pcb7's last end: 414 x 542, 542 = 2 x 271, took 19 ms
+    # a channel's transform pair where 432 x 576 takes 2.7)
+    rows, cols = small.shape[:2]
+    grid = tuple(sfft.next_fast_len(n + 2 * pad, real=True) for n in (rows, cols))
+    extra = ((pad, grid[0] - rows - pad), (pad, grid[1] - cols - pad), (0, 0))
+    padded = np.pad(small, extra, mode="reflect")
     fy = np.fft.fftfreq(grid[0])[:, None]
     fx = np.fft.rfftfreq(grid[1])[None, :]
     gradient = (2 - 2 * np.cos(2 * np.pi * fy)) + (2 - 2 * np.cos(2 * np.pi * fx))
@@ -230,7 +234,9 @@ def _reduced_correction(average, end_kernel, stack_kernel, factor: int) -> np.nd
         transfer = transfer + sign * np.conj(spectrum) / (np.abs(spectrum) ** 2 + lam * gradient)
     return np.stack(
         [
-            sfft.irfft2(sfft.rfft2(padded[..., c]) * transfer, s=grid)[pad:-pad, pad:-pad]
+            sfft.irfft2(sfft.rfft2(padded[..., c]) * transfer, s=grid)[
+                pad : pad + rows, pad : pad + cols
+            ]
             for c in range(padded.shape[2])
         ],
         axis=2,
