@@ -101,6 +101,7 @@ def test_the_main_job_restores_a_plane_beyond_the_range(tmp_path, sharp):
 
 def test_the_end_correction_is_the_difference_of_two_wiener_filters():
     from scipy import ndimage
+    from scipy.fft import next_fast_len
 
     from pipeline.core.psf import raster_pillbox
     from pipeline.jobs import ends
@@ -115,9 +116,15 @@ def test_the_end_correction_is_the_difference_of_two_wiener_filters():
 
     assert not np.any(correction(narrow, narrow, 1))  # the same kernel: nothing
     full = correction(wide, narrow, 1)
-    # by hand: each Wiener filter on the reflect-padded image, one spectrum at a time
+    # by hand: each Wiener filter on the reflect-padded image, one spectrum at a time; the
+    # padding reflects the kernel's side on the top and left and on to a fast FFT size on
+    # the bottom and right (256 + 42 -> 300, 320 + 42 -> 375)
     pad = 21
-    padded = np.pad(image.astype(np.float64), pad, mode="reflect")
+    rows, cols = image.shape
+    grid = [next_fast_len(n + 2 * pad, real=True) for n in (rows, cols)]
+    assert grid == [300, 375]
+    extent = ((pad, grid[0] - rows - pad), (pad, grid[1] - cols - pad))
+    padded = np.pad(image.astype(np.float64), extent, mode="reflect")
     fy = np.fft.fftfreq(padded.shape[0])[:, None]
     fx = np.fft.fftfreq(padded.shape[1])[None, :]
     gradient = (2 - 2 * np.cos(2 * np.pi * fy)) + (2 - 2 * np.cos(2 * np.pi * fx))
@@ -131,7 +138,7 @@ def test_the_end_correction_is_the_difference_of_two_wiener_filters():
         grid[-h:, -h:] = kernel[:h, :h]
         k = np.fft.fft2(grid)
         w = np.conj(k) / (np.abs(k) ** 2 + ends.CORRECTION_LAM * gradient)
-        return np.real(np.fft.ifft2(np.fft.fft2(padded) * w))[pad:-pad, pad:-pad]
+        return np.real(np.fft.ifft2(np.fft.fft2(padded) * w))[pad : pad + rows, pad : pad + cols]
 
     np.testing.assert_allclose(full, wiener(wide) - wiener(narrow), atol=1e-5)
     for factor in (2, 4):  # reduced: the same in the low band
