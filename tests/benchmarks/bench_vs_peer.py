@@ -128,9 +128,16 @@ def flexdof_exe() -> list[str]:
     return [str(exe)] if exe.exists() else [sys.executable, "-m", "pipeline.cli"]
 
 
+# runs flexdof from the checkout named first (an absolute path: the children run in a
+# temporary directory), and refuses to run any other: until stop 47 a relative
+# ``--baseline`` was looked up from there, missed, and the installed checkout ran as its own
+# baseline (the flexdof/flexdof@base ratios of stops 42-44, run with ``../wt-...``, compared
+# a commit with itself)
 BASELINE_SNIPPET = (
-    "import sys; sys.path.insert(0, sys.argv.pop(1)); from pipeline.cli import main; "
-    "sys.argv[0] = 'flexdof'; sys.exit(main())"
+    "import sys, os; base = sys.argv.pop(1); sys.path.insert(0, base); import pipeline; "
+    "here = os.path.dirname(os.path.dirname(os.path.abspath(pipeline.__file__))); "
+    "here == base or sys.exit(f'baseline {base}: imported pipeline from {here}'); "
+    "from pipeline.cli import main; sys.argv[0] = 'flexdof'; sys.exit(main())"
 )
 
 
@@ -153,7 +160,7 @@ def commands_for(
         ]  # fmt: skip
     if baseline:  # another checkout of flexdof (e.g. a git worktree of an older commit)
         cmds["flexdof@base"] = [
-            sys.executable, "-c", BASELINE_SNIPPET, str(baseline),
+            sys.executable, "-c", BASELINE_SNIPPET, str(Path(baseline).resolve()),
             "stack", *frames, "-o", str(tmp / "base.tif"),
         ]  # fmt: skip
     if decode:
