@@ -131,8 +131,8 @@ def flexdof_exe() -> list[str]:
 # runs flexdof from the checkout named first (an absolute path: the children run in a
 # temporary directory), and refuses to run any other: until stop 47 a relative
 # ``--baseline`` was looked up from there, missed, and the installed checkout ran as its own
-# baseline (the flexdof/flexdof@base ratios of stops 42-44, run with ``../wt-...``, compared
-# a commit with itself)
+# baseline (so the flexdof/flexdof@base ratios of stops 41-44, run with ``../wt-...`` paths,
+# most likely compared a commit with itself)
 BASELINE_SNIPPET = (
     "import sys, os; base = sys.argv.pop(1); sys.path.insert(0, base); import pipeline; "
     "here = os.path.dirname(os.path.dirname(os.path.abspath(pipeline.__file__))); "
