@@ -71,10 +71,9 @@ def to_codes(image: np.ndarray) -> np.ndarray:
     even: the bits of OpenCV 5.1's ``cv2.multiply(image, 65535, dtype=CV_16U)`` (checked
     on 20 Mpx of uniform values and on every half code and its neighbours), in half its
     time (1.2 against 2.3 ms on 256 rows of 2048 px RGB: OpenCV's scaled conversion to 16
-    bits has no fast path), and the same codes whatever OpenCV is installed (OpenCV 5.0 took
-    the product in double, so a product within half a float32 ulp of a half code could
-    round the other way there). A product within half a float32 ulp (2**-9
-    code) of a half code rounds to either side of it, so a code is at most 0.502 codes off.
+    bits has no fast path), whatever OpenCV is installed (OpenCV 5.0 took the product in
+    double). In float32 a product within half an ulp (2**-9 code) of a half code may round
+    to either side of it, so a code is at most 0.502 codes off.
     """
     # the cap is a full-frame copy (8 ms on 3 Mpx RGB); decoded frames never exceed 1
     # (a 1 ms check), and a NaN maximum takes the capping path
