@@ -81,7 +81,7 @@ def tune_process() -> None:
       asks the kernel for huge pages on every large array, and where the kernel then
       compacts memory to find them on the first touch (``defrag`` ``madvise``, the
       default of Debian and Ubuntu), each of the guards' full-size temporaries costs a
-      compaction: pcb7 spent 1.1-2.0 s of system CPU, 0.7-0.8 s without, and 4.0-4.2
+      compaction: pcb7 spent 1.5-2.0 s of system CPU, 0.7-0.8 s without, and 4.0-4.2
       instead of 4.6-4.7 s of wall time (three paired runs); user CPU and peak memory
       the same. A numpy already imported is switched at once.
     Skipped where libc is not glibc.
@@ -89,7 +89,8 @@ def tune_process() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
     numpy = sys.modules.get("numpy")
-    switch = getattr(getattr(numpy, "_core", None), "multiarray", None)
+    core = getattr(numpy, "_core", None) or getattr(numpy, "core", None)  # numpy 2, 1.26
+    switch = getattr(core, "multiarray", None)
     if switch is not None and hasattr(switch, "_set_madvise_hugepage"):
         switch._set_madvise_hugepage(os.environ["NUMPY_MADVISE_HUGEPAGE"] != "0")
     try:

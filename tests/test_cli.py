@@ -122,7 +122,7 @@ print('ok')
 )
 def test_tune_process_turns_numpys_huge_pages_off_unless_asked_for(setting, numpy_first, huge):
     """numpy's huge-page requests are off after ``tune_process`` (each full-size temporary
-    otherwise costs the kernel a compaction: pcb7's system CPU 1.1-2.0 s against 0.7), also
+    otherwise costs the kernel a compaction: pcb7's system CPU 1.5-2.0 s against 0.7-0.8), also
     for a numpy imported before it; a user's own ``NUMPY_MADVISE_HUGEPAGE=1`` stands. Read
     back through numpy's own switch, which returns the setting it replaces."""
     code = (

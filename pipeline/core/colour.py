@@ -1,5 +1,6 @@
 """The sRGB transfer function (IEC 61966-2-1), both ways, in float32 or float64; the grey
-image of a colour one.
+image of a colour one; a per-pixel scale of every channel, and a grey image moved to a
+target keeping the hue.
 """
 
 from __future__ import annotations

@@ -218,7 +218,7 @@ def _reduced_correction(average, end_kernel, stack_kernel, factor: int) -> np.nd
     small = small if small.ndim == 3 else small[..., None]
     ke, k0 = (_reduced_kernel(k, factor) for k in (end_kernel, stack_kernel))
     pad = max(ke.shape[0], k0.shape[0])  # reflect: no wrap-around at the borders
-    # ... and on to a fast FFT size (pcb7's last end: 414 x 542, 542 = 2 x 271, took 19 ms
+    # ... and on to a fast FFT size (one of pcb7's ends: 414 x 542, 542 = 2 x 271, took 19 ms
     # a channel's transform pair where 432 x 576 takes 2.7)
     rows, cols = small.shape[:2]
     grid = tuple(sfft.next_fast_len(n + 2 * pad, real=True) for n in (rows, cols))
