@@ -870,3 +870,28 @@ def test_a_half_without_texture_counts_as_disagreeing():
     keystone = np.array([[1.0, 0, 0], [0, 1.0, 0], [1e-4, 0, 1.0]])
     assert math.isfinite(_halves_spread(textured, textured, np.eye(3), keystone))
     assert _halves_spread(flat_top, flat_top, np.eye(3), keystone) == math.inf
+
+
+def test_breathing_fit_recovers_a_pure_breathing_stack():
+    """The benchmark's stack-wide breathing model (``align_breathing.py``) finds the centre
+    and every scale of homographies built as shift, scale, shift back, with no residual;
+    a frame turned about another point is left with its distance from the model, the
+    others with none when the centre is held where it is."""
+    from benchmarks.align_breathing import breathing_fit
+
+    shape, centre = (120, 160), np.array([61.3, 70.8])
+    to, back = np.eye(3), np.eye(3)
+    to[:2, 2], back[:2, 2] = centre, -centre
+    scales = [0.97, 0.985, 1.0, 1.012, 1.03]
+    stack = [to @ np.diag([s, s, 1.0]) @ back for s in scales]
+    models, found, residuals = breathing_fit(stack, shape)
+    np.testing.assert_allclose(found, centre, atol=1e-6)
+    np.testing.assert_allclose([m[0, 0] for m in models], scales, atol=1e-9)
+    assert residuals.max() < 1e-6, residuals
+    turned = stack[:]
+    turned[0] = similarity(1.0, 0.5, (0.0, 0.0), (0.0, 0.0)) @ stack[0]  # about the origin
+    _, _, residuals = breathing_fit(turned, shape)
+    assert residuals.argmax() == 0 and residuals[0] > 0.3, residuals
+    _, held, residuals = breathing_fit(turned, shape, centre=centre)
+    np.testing.assert_array_equal(held, centre)
+    assert residuals[0] > 0.3 and residuals[1:].max() < 1e-9, residuals

@@ -69,13 +69,24 @@ def _grid(rows: int, cols: int, step: int = 16) -> np.ndarray:
     return np.stack([xs.ravel(), ys.ravel(), np.ones(xs.size)]).astype(np.float64)
 
 
-def rendered_corners() -> list[str]:
-    """Rows: frames, noise, then each model's worst corner error against the truth (px)."""
+CORNERS = np.array(
+    [[0, SHAPE[1] - 1, 0, SHAPE[1] - 1], [0, 0, SHAPE[0] - 1, SHAPE[0] - 1], [1, 1, 1, 1.0]]
+)
+
+
+def worst_corner(found, truth) -> float:
+    """The largest distance (px) of a frame's corner from where ``truth`` puts it."""
+    return max(
+        float(np.hypot(*(_mapped(np.asarray(a), CORNERS) - _mapped(np.asarray(t), CORNERS))).max())
+        for a, t in zip(found, truth)
+    )
+
+
+def rendered_stacks():
+    """The rendered breathing stacks (8 and 24 frames, clean and with shot noise): yields
+    ``(frames, noisy, grey images, true homographies)``."""
     radiance, depth = scenes.edges_scene(SHAPE)
     lens = scenes.scene_lens(SHAPE)
-    rows_, cols_ = SHAPE
-    corners = np.array([[0, cols_ - 1, 0, cols_ - 1], [0, 0, rows_ - 1, rows_ - 1], [1, 1, 1, 1.0]])
-    lines = []
     with tempfile.TemporaryDirectory(prefix="align_models_") as tmp:
         for frames, noisy in itertools.product((8, 24), (False, True)):
             folder = Path(tmp) / f"{frames}_{noisy}"
@@ -83,18 +94,20 @@ def rendered_corners() -> list[str]:
             listed = tomllib.loads((folder / "stack.toml").read_text())["frames"]
             images = [read_frame(folder / f["file"]).mean(axis=-1) for f in listed]
             truth = align.analytic_alignment([f["image_distance_mm"] for f in listed], SHAPE)
-            cells = []
-            for model in MODELS:
-                found = align.estimate_alignment(images, model=model)
-                apart = [
-                    _mapped(a.homography, corners) - _mapped(t.homography, corners)
-                    for a, t in zip(found, truth)
-                ]
-                worst = max(float(np.hypot(*d).max()) for d in apart)
-                cells.append(f"{worst:.3f}")
-            line = f"| {frames} | {'yes' if noisy else 'no'} | " + " | ".join(cells) + " |"
-            print(line, flush=True)
-            lines.append(line)
+            yield frames, noisy, images, [t.homography for t in truth]
+
+
+def rendered_corners() -> list[str]:
+    """Rows: frames, noise, then each model's worst corner error against the truth (px)."""
+    lines = []
+    for frames, noisy, images, truth in rendered_stacks():
+        cells = []
+        for model in MODELS:
+            found = align.estimate_alignment(images, model=model)
+            cells.append(f"{worst_corner([a.homography for a in found], truth):.3f}")
+        line = f"| {frames} | {'yes' if noisy else 'no'} | " + " | ".join(cells) + " |"
+        print(line, flush=True)
+        lines.append(line)
     return lines
 
 
