@@ -37,7 +37,16 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from align_models import CROPS, SHAPE, SIDE_PX, _grid, _mapped, rendered_stacks, worst_corner
+from align_models import (
+    CROPS,
+    SHAPE,
+    SIDE_PX,
+    _grid,
+    _mapped,
+    crop_moved,
+    rendered_stacks,
+    worst_corner,
+)
 from align_without_breathing import write_table
 from real_stacks import SHARED, STACKS
 
@@ -128,18 +137,6 @@ def rendered_rows() -> list[str]:
     return lines
 
 
-def _crop_moved(first, again, shape, margin: int, to_full: float) -> float:
-    """The largest distance (full-resolution px) over the crop between estimates on the
-    whole copies (``first``) and on the copies cropped by ``margin`` (``again``)."""
-    shift = np.array([[1, 0, margin], [0, 1, margin], [0, 0, 1.0]])
-    points = _grid(shape[0] - 2 * margin, shape[1] - 2 * margin)
-    back = np.linalg.inv(shift)
-    return to_full * max(
-        float(np.hypot(*(_mapped(back @ a @ shift, points) - _mapped(b, points))).max())
-        for a, b in zip(first, again)
-    )
-
-
 def real_rows() -> tuple[list[str], list[str]]:
     """Rows of the model's fit and of the crop test, per real stack."""
     fit_rows, crop_rows = [], []
@@ -167,7 +164,7 @@ def real_rows() -> tuple[list[str], list[str]]:
             again = [a.homography for a in align.estimate_alignment(cropped)]
             again_model, _, _ = breathing_fit(again, cropped[0].shape[:2])
             moved = (
-                _crop_moved(a, b, shape, margin, to_full)
+                max(crop_moved(a, b, shape, margin, to_full))
                 for a, b in ((found, again), (model, again_model))
             )
             crop_rows.append(

@@ -127,6 +127,19 @@ def feature_scales(files: list[str]) -> np.ndarray:
     return np.array(scales)
 
 
+def crop_moved(first, again, shape, margin: int, to_full: float) -> list[float]:
+    """Per frame, the largest distance (full-resolution px) over the crop between the
+    estimate on the whole copies (``first``, of ``shape``) and on the copies cropped by
+    ``margin`` on every side (``again``); ``to_full`` converts the copies' px."""
+    shift = np.array([[1, 0, margin], [0, 1, margin], [0, 0, 1.0]])
+    back = np.linalg.inv(shift)
+    points = _grid(shape[0] - 2 * margin, shape[1] - 2 * margin)
+    return [
+        float(np.hypot(*(_mapped(back @ a @ shift, points) - _mapped(b, points))).max()) * to_full
+        for a, b in zip(first, again)
+    ]
+
+
 def real_stacks() -> tuple[list[str], list[str]]:
     """Rows of the feature-match table and of the crop table, per real stack."""
     feature_rows, crop_rows = [], []
@@ -146,23 +159,16 @@ def real_stacks() -> tuple[list[str], list[str]]:
         for share in CROPS:
             m = int(share * min(rows_, cols_))
             cropped = [p[m : rows_ - m, m : cols_ - m].copy() for p in previews]
-            shift = np.array([[1, 0, m], [0, 1, m], [0, 0, 1.0]])
-            points = _grid(rows_ - 2 * m, cols_ - 2 * m)
             cells = []
             for model in MODELS:
                 again = align.estimate_alignment(cropped, model=model)
-                apart = [
-                    float(
-                        np.hypot(
-                            *(
-                                _mapped(np.linalg.inv(shift) @ a.homography @ shift, points)
-                                - _mapped(b.homography, points)
-                            )
-                        ).max()
-                    )
-                    * to_full
-                    for a, b in zip(estimates[model], again)
-                ]
+                apart = crop_moved(
+                    [a.homography for a in estimates[model]],
+                    [b.homography for b in again],
+                    previews[0].shape,
+                    m,
+                    to_full,
+                )
                 cells.append(f"{max(apart):.2f} ({np.median(apart):.2f})")
             crop_rows.append(f"| {name} | {share:.0%} | " + " | ".join(cells) + " |")
         print(feature_rows[-1], *crop_rows[-len(CROPS) :], sep="\n", flush=True)
