@@ -888,6 +888,8 @@ def test_breathing_fit_recovers_a_pure_breathing_stack():
     np.testing.assert_allclose(found, centre, atol=1e-6)
     np.testing.assert_allclose([m[0, 0] for m in models], scales, atol=1e-9)
     assert residuals.max() < 1e-6, residuals
+    for model in models:  # every model leaves the centre where it is
+        np.testing.assert_allclose(model @ [*centre, 1.0], [*centre, 1.0], atol=1e-6)
     turned = stack[:]
     turned[0] = similarity(1.0, 0.5, (0.0, 0.0), (0.0, 0.0)) @ stack[0]  # about the origin
     _, _, residuals = breathing_fit(turned, shape)
