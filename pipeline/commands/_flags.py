@@ -30,7 +30,7 @@ from pathlib import Path
 CLI_METHODS = ("wiener", "rl", "multiframe")
 SINGLE_IMAGE_METHODS = ("wiener", "rl")
 ALIGN_MODES = ("estimate", "analytic", "none")
-ALIGN_MODELS = ("auto", "similarity", "keystone", "affine", "homography")
+ALIGN_MODELS = ("auto", "similarity", "breathing", "keystone", "affine", "homography")
 ENCODINGS = ("srgb16", "linear16", "float32", "srgb8")
 DEFAULT_LENS = "fujinon-12.5mm-f1.4-sony-1-3in"
 
@@ -196,7 +196,9 @@ def add_alignment(parser: argparse.ArgumentParser, *, defaults: bool = True) -> 
         choices=ALIGN_MODELS,
         default="similarity" if defaults else None,
         help="what an estimated alignment fits: a shift, turn and scaling (similarity: focus "
-        "breathing, a rail, a steady hand), also the keystone of a wide-angle lens turned "
+        "breathing, a rail, a steady hand; frames within 0.25 px of a breathing about the "
+        "image centre get that breathing), the breathing alone (breathing: a camera that "
+        "does not move), also the keystone of a wide-angle lens turned "
         "between frames (keystone), shear (affine) or all of these (homography); auto: the "
         "similarity, or the keystone where a pair of frames shows one (a depth gradient "
         "across the frame can look like one)",

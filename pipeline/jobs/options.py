@@ -26,8 +26,10 @@ ALIGN_MODES = ("estimate", "analytic", "none")
 # moving 2.2-12 px (similarity 0.9-5.6 px) when the frames are cropped. "auto" fits the
 # similarity, and the keystone where a pair of frames shows a turn's; it is not the default
 # because a depth gradient across the frame can look like one
-# (tests/benchmarks/results/align/align_models.md)
-ALIGN_MODELS = ("auto", "similarity", "keystone", "affine", "homography")
+# (tests/benchmarks/results/align/align_models.md). A similarity whose frames all lie within
+# a quarter px of one breathing about the image centre is that breathing; "breathing" fits it
+# whatever the frames' distance (a camera known not to move; align_breathing.md)
+ALIGN_MODELS = ("auto", "similarity", "breathing", "keystone", "affine", "homography")
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
 
 
