@@ -954,7 +954,8 @@ def breathing_stack(tmp_path_factory):
 def test_a_stack_that_only_breathes_aligns_as_its_breathing(breathing_stack):
     """The frames' similarities lie within the tolerance of one breathing about the
     centre, so the estimate is that breathing: every corner within 0.1 px of the truth
-    (a similarity per frame: 0.21 px, its shifts and turns the pairs' blur differences)."""
+    (a similarity per frame, ``breathing_px=None``: 0.21 px, its shifts and turns the
+    pairs' blur differences)."""
     frames, truth = breathing_stack
     found = estimate_alignment(frames)
     assert {a.model for a in found} == {"breathing"}
@@ -962,6 +963,10 @@ def test_a_stack_that_only_breathes_aligns_as_its_breathing(breathing_stack):
     assert worst < 0.1, worst
     for a in found:
         assert a.scale == pytest.approx(1 / scale_of(a.homography), rel=1e-12)
+    plain = estimate_alignment(frames, breathing_px=None)  # the similarities, not snapped
+    assert {a.model for a in plain} == {"similarity"}
+    unsnapped = max(corner_error(a.homography, t, frames[0].shape) for a, t in zip(plain, truth))
+    assert unsnapped > 1.5 * worst, (unsnapped, worst)
 
 
 def test_a_frame_that_moved_keeps_the_stack_on_its_similarities(breathing_stack):

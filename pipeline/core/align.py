@@ -494,6 +494,7 @@ def estimate_alignment(
     fallback: Sequence[Alignment] | None = None,
     workers: int = 1,
     names: Sequence[str] | None = None,
+    breathing_px: float | None = BREATHING_TOLERANCE_PX,
 ) -> list[Alignment]:
     """Homographies that map every frame of a focal stack onto the reference frame (Sec. 9).
 
@@ -509,7 +510,7 @@ def estimate_alignment(
         Motion model. Focus breathing is a scaling about the optical centre
         (Fig. 1), a rail's or a steady hand's motion a shift and a turn: a
         similarity (4 degrees of freedom). A stack whose similarities all lie within
-        ``BREATHING_TOLERANCE_PX`` of the matching copy from one breathing about the
+        ``breathing_px`` of the matching copy from one breathing about the
         image centre (:func:`breathing_about_centre`) gets that breathing (``model``
         "breathing"): its frames did not move, and the scaling alone leaves out the
         shifts and turns the blur differences lend each pair (rendered breathing
@@ -557,6 +558,9 @@ def estimate_alignment(
         will need are matched ahead, in parallel; the result does not depend on it.
     names : sequence of str, optional
         What to call each frame in messages (e.g. its file name); default ``frame i``.
+    breathing_px : float or None
+        The similarity's snap to the stack's breathing (see ``model``): the largest
+        distance (px of the matching copy) of a frame from it; None never snaps.
 
     Returns
     -------
@@ -709,23 +713,26 @@ def estimate_alignment(
             if turn:
                 logger.info("alignment: %s; fitting the keystone model", turn)
                 out, _ = solve("keystone", pool)
-    if model == "breathing" or out[ref].model == "similarity":
-        out = _as_breathing(out, full_shape, max(reduced) / max(full_shape), model == "breathing")
+    if model == "breathing" or (out[ref].model == "similarity" and breathing_px is not None):
+        tolerance = math.inf if model == "breathing" else breathing_px
+        out = _as_breathing(out, full_shape, max(reduced) / max(full_shape), tolerance)
     return out
 
 
 def _as_breathing(
-    out: list[Alignment], shape: tuple[int, int], to_matching: float, always: bool
+    out: list[Alignment], shape: tuple[int, int], to_matching: float, tolerance_px: float
 ) -> list[Alignment]:
     """``out`` as the stack's breathing about the image centre
-    (:func:`breathing_about_centre`): ``always``, or where every frame was estimated and
-    lies within ``BREATHING_TOLERANCE_PX`` of it at the matching copy's scale
-    (``to_matching`` px per full-resolution px). Frames that failed keep their fallback."""
+    (:func:`breathing_about_centre`) where every frame lies within ``tolerance_px`` of it
+    at the matching copy's scale (``to_matching`` px per full-resolution px), and every
+    frame was estimated unless ``tolerance_px`` is infinite (then frames that failed keep
+    their fallback)."""
+    always = math.isinf(tolerance_px)
     if not always and not all(a.ok for a in out):
         return out
     models, distances = breathing_about_centre([a.homography for a in out], shape)
     farthest = float(distances.max()) * to_matching
-    if not always and farthest > BREATHING_TOLERANCE_PX:
+    if farthest > tolerance_px:
         return out
     logger.info(
         "alignment: the frames lie within %.3f px (matching copy) of a breathing about the "
