@@ -986,3 +986,21 @@ def test_a_frame_that_moved_keeps_the_stack_on_its_similarities(breathing_stack)
     snapped = estimate_alignment(moved, model="breathing")
     assert {a.model for a in snapped} == {"breathing"}
     assert corner_error(snapped[1].homography, truth[1], frames[0].shape) < 0.3
+
+
+def test_a_frame_that_failed_keeps_the_stack_on_its_similarities(breathing_stack, caplog):
+    """A frame with nothing to match falls back to its neighbour's transform; the stack is
+    not snapped to a breathing then (the fallback says nothing of the frame's motion), and
+    asked for "breathing", the frames estimated are snapped and the fallback is left as it
+    was."""
+    frames, _ = breathing_stack
+    blank = list(frames)
+    blank[0] = np.full_like(frames[0], 0.4)
+    with caplog.at_level(logging.WARNING):
+        found = estimate_alignment(blank)
+    assert [a.ok for a in found] == [False] + [True] * (len(frames) - 1)
+    assert {a.model for a in found} == {"similarity"}
+    snapped = estimate_alignment(blank, model="breathing")
+    assert {a.model for a in snapped[1:]} == {"breathing"}
+    assert not snapped[0].ok and snapped[0].model == "similarity"  # as the fallback left it
+    np.testing.assert_array_equal(snapped[0].homography, found[0].homography)
