@@ -488,6 +488,9 @@ def test_estimate_validates():
         estimate_alignment([a, a], reference=2)
     with pytest.raises(InputError, match=r"frames\[0\]"):
         estimate_alignment([np.zeros((4, 4, 4, 4))])
+    for bad in (-0.1, math.nan, math.inf, "0.25"):
+        with pytest.raises(InputError, match="breathing_px must be a finite number"):
+            estimate_alignment([a, a], breathing_px=bad)
 
 
 # --- real focal stacks --------------------------------------------------------------------------
@@ -928,6 +931,13 @@ def test_breathing_about_centre_against_the_geometry(scale, angle, shift):
     offsets = corners(shape) - centre
     turned = scale * math.sin(theta) * np.c_[-offsets[:, 1], offsets[:, 0]]
     assert distance == pytest.approx(np.hypot(*(turned + shift).T).max(), abs=1e-9)
+
+
+def test_breathing_of_a_single_pixel_is_no_scaling():
+    """A 1x1 image shows no scale: its breathing is the identity, not 0/0."""
+    (model,), (distance,) = breathing_about_centre([np.eye(3)], (1, 1))
+    np.testing.assert_array_equal(model, np.eye(3))
+    assert distance == 0.0
 
 
 @pytest.fixture(scope="module")

@@ -120,7 +120,8 @@ class Alignment:
         ECC correlation coefficient of the frame with its anchor on their overlap
         at the matching resolution (None when not measured).
     model : str or None
-        The motion model the estimate fitted (what ``model="auto"`` chose); None
+        The motion model the estimate fitted (what ``model="auto"`` chose; "breathing"
+        where the similarities were snapped to the stack's breathing); None
         where nothing was estimated (analytic or identity transforms).
     """
 
@@ -242,9 +243,10 @@ def breathing_about_centre(
     grid = np.stack([xs.ravel(), ys.ravel()], axis=1)
     offsets = grid - centre
     models, distances = [], []
+    spread = float(np.sum(offsets * offsets))  # 0 for a single pixel: no scale is seen
     for h in homographies:
         mapped = map_points(h, grid)
-        s = float(np.sum(offsets * (mapped - centre)) / np.sum(offsets * offsets))
+        s = float(np.sum(offsets * (mapped - centre))) / spread if spread > 0 else 1.0
         model = np.array([[s, 0, (1 - s) * centre[0]], [0, s, (1 - s) * centre[1]], [0, 0, 1.0]])
         models.append(model)
         distances.append(float(np.hypot(*(mapped - map_points(model, grid)).T).max()))
@@ -591,6 +593,14 @@ def estimate_alignment(
         raise InputError(f"fallback must have one Alignment per frame ({n}), got {len(fallback)}")
     if names is not None and len(names) != n:
         raise InputError(f"names must have one name per frame ({n}), got {len(names)}")
+    if breathing_px is not None and not (
+        isinstance(breathing_px, int | float | np.floating | np.integer)
+        and math.isfinite(breathing_px)
+        and breathing_px >= 0
+    ):
+        raise InputError(
+            f"breathing_px must be a finite number of px >= 0, or None, got {breathing_px!r}"
+        )
     label = [f"frame {i}" for i in range(n)] if names is None else [str(v) for v in names]
 
     full_shape: tuple[int, int] | None = None
