@@ -206,14 +206,15 @@ def _similar_after_perspective(h: np.ndarray, shape) -> bool:
 
 @pytest.mark.parametrize(
     "model, fitted",
-    [("auto", "keystone"), ("similarity", "similarity"), ("keystone", "keystone"),
-     ("affine", "affine"), ("homography", "homography")],
+    [("auto", "keystone"), ("similarity", "similarity"), ("breathing", "breathing"),
+     ("keystone", "keystone"), ("affine", "affine"), ("homography", "homography")],
 )  # fmt: skip
 def test_the_model_is_the_flag_and_is_recorded(tmp_path, sharp, model, fitted):
     """``--align-model`` reaches the estimate: a similarity's linear part is a turned
     scaling (``[[a, -b], [b, a]]``), an affine's has no perspective row, a keystone's is a
     turned scaling once its perspective row is factored out, a homography's none of these;
-    the sidecar says which model was fitted and null where nothing was estimated. "auto"
+    a breathing's is a scaling about the image centre; the sidecar says which model was
+    fitted and null where nothing was estimated. "auto"
     fits the keystone here though nothing was turned: the three planes give a depth
     gradient across this small frame that its check reads as a turn (share 0.27, a corner
     moved by 1.8 px, halves 1.9 apart), the limit that keeps it from being the default."""
@@ -238,13 +239,16 @@ def test_the_model_is_the_flag_and_is_recorded(tmp_path, sharp, model, fitted):
     shape = read_frame(sorted(folder.glob("frame_*.tif"))[0]).shape[:2]
     for h in moved:
         turned_scaling = np.isclose(h[0, 0], h[1, 1]) and np.isclose(h[0, 1], -h[1, 0])
-        assert turned_scaling == (fitted == "similarity")
-        assert np.allclose(h[2, :2], 0) == (fitted in ("similarity", "affine"))
+        assert turned_scaling == (fitted in ("similarity", "breathing"))
+        assert np.allclose(h[2, :2], 0) == (fitted in ("similarity", "breathing", "affine"))
+        centre = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+        assert np.allclose(h @ centre, centre) == (fitted == "breathing")
     # the reference's neighbours hold one matched pair each (the others compose several,
     # and keystones do not compose into keystones)
     ref = len(homographies) // 2
     for h in (homographies[ref - 1], homographies[ref + 1]):
-        assert _similar_after_perspective(h, shape) == (fitted in ("similarity", "keystone"))
+        similar = fitted in ("similarity", "breathing", "keystone")
+        assert _similar_after_perspective(h, shape) == similar
     none = tmp_path / "none.tif"
     assert main(["-q", "stack", str(folder), "-o", str(none), "--align", "none"]) == 0
     assert json.loads(none.with_name(none.name + ".json").read_text())["align_model"] is None
