@@ -562,7 +562,8 @@ def estimate_alignment(
         What to call each frame in messages (e.g. its file name); default ``frame i``.
     breathing_px : float or None
         The similarity's snap to the stack's breathing (see ``model``): the largest
-        distance (px of the matching copy) of a frame from it; None never snaps.
+        distance (px of the matching copy) of a frame from it; None never snaps a
+        similarity (``model="breathing"`` is snapped whatever this is).
 
     Returns
     -------
