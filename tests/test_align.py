@@ -833,7 +833,7 @@ def test_auto_keeps_the_similarity_of_stacks_that_were_not_turned(shared_data, t
         auto = estimate_alignment(frames, model="auto")
         plain = estimate_alignment(frames, model="similarity")
         # the rendered stack's frames lie within the tolerance of its breathing; the real
-        # stacks' frames move (beetle's lie 0.46 px from it, the others' 2.2-10 px)
+        # stacks' frames move (beetle's lie 0.46 px from it, the others' 2.2-9.7 px)
         fitted = "breathing" if name == "rendered" else "similarity"
         assert {a.model for a in auto} == {a.model for a in plain} == {fitted}, name
         for a, b in zip(auto, plain):
@@ -883,8 +883,7 @@ def test_a_half_without_texture_counts_as_disagreeing():
 def test_breathing_fit_recovers_a_pure_breathing_stack():
     """The benchmark's stack-wide breathing model (``align_breathing.py``) finds the centre
     and every scale of homographies built as shift, scale, shift back, with no residual;
-    a frame turned about another point is left with its distance from the model, the
-    others with none when the centre is held where it is."""
+    a frame turned about another point is left with its distance from the model."""
     from benchmarks.align_breathing import breathing_fit
 
     shape, centre = (120, 160), np.array([61.3, 70.8])
@@ -902,9 +901,6 @@ def test_breathing_fit_recovers_a_pure_breathing_stack():
     turned[0] = similarity(1.0, 0.5, (0.0, 0.0), (0.0, 0.0)) @ stack[0]  # about the origin
     _, _, residuals = breathing_fit(turned, shape)
     assert residuals.argmax() == 0 and residuals[0] > 0.3, residuals
-    _, held, residuals = breathing_fit(turned, shape, centre=centre)
-    np.testing.assert_array_equal(held, centre)
-    assert residuals[0] > 0.3 and residuals[1:].max() < 1e-9, residuals
 
 
 @given(

@@ -90,8 +90,8 @@ _FEATURES_MAX = 4000
 # matching copy from it: what is left is the estimate's error, not motion. ECC's peak moves
 # with the frames' blur differences: on rendered breathing stacks (a scaling about the
 # centre and nothing else) the similarities lie 0.14-0.16 px from it, with corners 0.17-0.21
-# px from the truth, the breathing's 0.06-0.08 px; the real stacks' frames move: beetle's lie
-# up to 0.46 px from it, amber's 2.2, pcb7's 4.1, pcb10's 10
+# px from the truth, the breathing's 0.07 px; the real stacks' frames move: beetle's lie
+# up to 0.46 px from it, amber's 2.2, pcb7's 3.9, pcb10's 9.7
 # (tests/benchmarks/results/align/align_breathing.md)
 BREATHING_TOLERANCE_PX = 0.25
 
@@ -516,7 +516,7 @@ def estimate_alignment(
         image centre (:func:`breathing_about_centre`) gets that breathing (``model``
         "breathing"): its frames did not move, and the scaling alone leaves out the
         shifts and turns the blur differences lend each pair (rendered breathing
-        stacks: corners 0.06-0.08 px from the truth against 0.17-0.21 px). "breathing"
+        stacks: corners 0.07 px from the truth against 0.17-0.21 px). "breathing"
         fits it whatever the frames' distance from it (a camera known not to move).
         "keystone" adds the two perspective
         terms of a wide-angle lens turned between frames (see ``_project``),

@@ -65,16 +65,15 @@ def scaling_about(centre: np.ndarray, scale: float) -> np.ndarray:
     )
 
 
-def breathing_fit(homographies, shape, centre=None, rounds: int = 5000):
-    """The breathing model nearest to per-frame homographies.
+def breathing_fit(homographies, shape, rounds: int = 5000):
+    """The breathing model nearest to per-frame homographies, its centre fitted (the main
+    job's, about the image centre, is :func:`pipeline.core.align.breathing_about_centre`).
 
     Parameters
     ----------
     homographies : sequence of (3, 3) arrays
         Each frame's map onto the reference (pixel coordinates of ``shape``).
     shape : (rows, cols)
-    centre : (x, y), optional
-        Hold the centre there (default: fitted).
     rounds : int
         Alternations of the scales (each frame's, given the centre) and the centre
         (given the scales); both steps are linear least squares.
@@ -90,13 +89,10 @@ def breathing_fit(homographies, shape, centre=None, rounds: int = 5000):
     """
     points = _grid(*shape, step=max(1, min(shape) // 16))
     mapped = [_mapped(np.asarray(h), points) for h in homographies]
-    fixed = centre is not None
-    c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2]) if centre is None else np.asarray(centre)
-    for _ in range(1 if fixed else rounds):
+    c = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])  # the first round's centre
+    for _ in range(rounds):
         d = points[:2] - c[:, None]
         scales = np.array([np.sum(d * (m - c[:, None])) / np.sum(d * d) for m in mapped])
-        if fixed:
-            break
         # m = (1 - s) c + s p for every point: (1 - s) c = m - s p, summed over frames
         weight = np.sum((1 - scales) ** 2) * points.shape[1]
         if weight < 1e-18:  # no frame scales: the centre is not seen
@@ -122,7 +118,7 @@ def rendered_rows() -> list[str]:
     for frames, noisy, images, truth in rendered_stacks():
         found = [a.homography for a in align.estimate_alignment(images, breathing_px=None)]
         fitted, centre, _ = breathing_fit(found, SHAPE)
-        about_axis, _, _ = breathing_fit(found, SHAPE, centre=axis)
+        about_axis, _ = align.breathing_about_centre(found, SHAPE)
         default = align.estimate_alignment(images)
         reference = np.asarray(images[len(images) // 2], np.float64)
         shifts = []
@@ -155,7 +151,7 @@ def real_rows() -> tuple[list[str], list[str]]:
         found = [a.homography for a in align.estimate_alignment(previews, breathing_px=None)]
         model, centre, residuals = breathing_fit(found, shape)
         axis = np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2])
-        _, _, from_axis = breathing_fit(found, shape, centre=axis)
+        _, from_axis = align.breathing_about_centre(found, shape)
         turn = max(abs(math.degrees(math.atan2(h[1, 0], h[0, 0]))) for h in found)
         scales = [align.scale_of(h) for h in found]
         fit_rows.append(
