@@ -346,6 +346,14 @@ def test_pixel_limit_refuses_a_decompression_bomb_before_decoding(tmp_path):
 
 
 @pytest.mark.timeout(60)
+def test_pixel_limit_below_a_megapixel_is_printed_as_it_is(sample, tmp_path):
+    # 0.0925 Mpx frames against a 0.05 Mpx limit: both read "0 Mpx" before
+    options = StackOptions(max_pixels=50_000)
+    with pytest.raises(InputError, match=r"370x250 px \(0\.0925 Mpx\).*limit of 0\.05 Mpx"):
+        process_stack(sample, tmp_path / "out.tif", options)
+
+
+@pytest.mark.timeout(60)
 def test_blur_span_larger_than_the_frame_is_refused(sample):
     with pytest.raises(InputError, match=r"--blur-span-px gives a blur span of 4000 px.*447 px"):
         process_stack(sample, sample / "out.tif", StackOptions(blur_span_px=4000.0))

@@ -113,8 +113,8 @@ def check_frame_size(stack: Stack, shape: tuple[int, ...], options: StackOptions
         )
     if rows * cols > options.max_pixels:
         raise InputError(
-            f"{first}: the frames are {cols}x{rows} px ({rows * cols / 1e6:.0f} Mpx), more than "
-            f"the limit of {options.max_pixels / 1e6:.0f} Mpx; raise it with --max-pixels if "
+            f"{first}: the frames are {cols}x{rows} px ({rows * cols / 1e6:.3g} Mpx), more than "
+            f"the limit of {options.max_pixels / 1e6:.3g} Mpx; raise it with --max-pixels if "
             "this is a real image (memory grows about 40 bytes per pixel)"
         )
 

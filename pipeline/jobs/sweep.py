@@ -82,8 +82,8 @@ def check_sweep_size(path: Path, lens: Lens, profile: Profile, options: StackOpt
         raise InputError(f"{path}: the image is {cols}x{rows} px; flexdof needs at least 8x8 px")
     if rows * cols > options.max_pixels:
         raise InputError(
-            f"{path}: the image is {cols}x{rows} px ({rows * cols / 1e6:.0f} Mpx), more than the "
-            f"limit of {options.max_pixels / 1e6:.0f} Mpx; raise it with --max-pixels"
+            f"{path}: the image is {cols}x{rows} px ({rows * cols / 1e6:.3g} Mpx), more than the "
+            f"limit of {options.max_pixels / 1e6:.3g} Mpx; raise it with --max-pixels"
         )
     p_lo, p_hi = profile.range_mm
     span = float(lens.blur_px(p_lo, p_hi))  # Eq. 2: a point focused at one end, seen at the other
