@@ -1,7 +1,8 @@
 """The region measures on stacks with a ground truth: what a perfect all-in-focus image scores
 against focus-stack, beside flexdof (issue 13).
 
-    python tests/benchmarks/regions_vs_truth.py --focus-stack PATH [--out DIR] [--work DIR]
+    python tests/benchmarks/regions_vs_truth.py --focus-stack PATH [--out DIR] [--work DIR] \
+        [--scenes board,board_45px_3frames,...]
 
 Real photographs have no truth, so ``real_stack_regions.py`` judges flexdof against
 focus-stack and the frames alone. This benchmark renders stacks of scenes whose all-in-focus
@@ -28,7 +29,13 @@ shot noise at 4000 e- per unit radiance and 3 e- read noise; ``SCENES``):
   unit radiance, 3 e- read noise: 0.015 in linear light at mid-grey), the case where the
   Wiener filter's noise limit holds the result (``pipeline.core.frame_support.
   visible_noise_limit``);
-* ``motorcycle``: the shipped sample, its 16-bit frames rounded to 8 bits.
+* ``motorcycle``: the shipped sample, its 16-bit frames rounded to 8 bits;
+* with ``--scenes`` only (``FEW_FRAMES``, not in the default run): ``board_45px_3frames``,
+  ``_4frames``, ``_5frames`` and ``board_22px_3frames``, ``board_45px`` and ``board_22px``
+  with three to five frames over the same range, 11-23 px of blur between neighbouring
+  frames: stacks too sparse for the sweep Sec. 9 emulates, where the average's blur varies
+  with depth between the frames
+  (``results/regions_vs_truth/few_frames/regions_vs_truth.md``).
 
 The summary also gives the blur span ``flexdof stack`` fitted (the frames carry no focus
 positions) against the one the scene was rendered with.
@@ -103,6 +110,15 @@ SCENES = {
     "board_iso3200": Board(2.0, 9, 300.0, 420.0, Exposure(780.0, 3.0)),
     "motorcycle": None,  # the shipped sample
 }
+DEFAULT_SCENES = tuple(SCENES)
+# sparse stacks, run with --scenes only: 45 and 22 px of blur over three to five frames
+FEW_FRAMES = {
+    "board_45px_3frames": Board(0.5, 3, 300.0, 420.0),
+    "board_45px_4frames": Board(0.5, 4, 300.0, 420.0),
+    "board_45px_5frames": Board(0.5, 5, 300.0, 420.0),
+    "board_22px_3frames": Board(1.0, 3, 300.0, 420.0),
+}
+SCENES.update(FEW_FRAMES)
 
 
 def board_radiance() -> np.ndarray:
@@ -240,7 +256,8 @@ def main() -> int:
         help="the focus-stack binary (bash ../shared/tools/build-focus-stack.sh)",
     )
     parser.add_argument("--flexdof-args", default="--threads 2")
-    parser.add_argument("--scenes", default=",".join(SCENES))
+    parser.add_argument("--scenes", default=",".join(DEFAULT_SCENES),
+                        help=f"default: all but {', '.join(FEW_FRAMES)}")
     parser.add_argument("--out", type=Path, default=RESULTS)
     parser.add_argument("--work", type=Path, help="renders and results (default OUT/work)")
     args = parser.parse_args()
