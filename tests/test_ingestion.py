@@ -27,7 +27,7 @@ import pytest
 from pipeline.errors import InputError
 from pipeline.io.read import read_frame, read_preview
 from pipeline.io.stackfile import load_stack
-from pipeline.jobs.options import StackOptions
+from pipeline.jobs.options import StackOptions, megapixels
 from pipeline.jobs.stack import process_stack
 
 REPO = Path(__file__).resolve().parents[1]
@@ -351,6 +351,15 @@ def test_pixel_limit_below_a_megapixel_is_printed_as_it_is(sample, tmp_path):
     options = StackOptions(max_pixels=50_000)
     with pytest.raises(InputError, match=r"370x250 px \(0\.0925 Mpx\).*limit of 0\.05 Mpx"):
         process_stack(sample, tmp_path / "out.tif", options)
+
+
+@pytest.mark.parametrize(
+    "pixels, shown",
+    [(92_500, "0.0925"), (375_000, "0.375"), (12_582_912, "12.6"), (99_400_000, "99.4"),
+     (256_000_000, "256"), (65535 * 65535, "4295")],
+)
+def test_megapixels_print_without_exponents(pixels, shown):
+    assert megapixels(pixels) == shown
 
 
 @pytest.mark.timeout(60)

@@ -33,6 +33,13 @@ ALIGN_MODELS = ("auto", "similarity", "breathing", "keystone", "affine", "homogr
 DEFAULT_MAX_PIXELS = 200_000_000  # 200 Mpx: above any single camera frame; about 8 GB of work
 
 
+def megapixels(pixels: int) -> str:
+    """``pixels`` in Mpx as the size messages print it: three digits under 100 Mpx (0.375,
+    12.6), whole Mpx above (256, 4295: no exponent for a decompression bomb's size)."""
+    mpx = pixels / 1e6
+    return f"{mpx:.3g}" if mpx < 100 else f"{mpx:.0f}"
+
+
 @dataclasses.dataclass(frozen=True)
 class StackOptions:
     """Options of the main job (the ``flexdof stack`` flags)."""

@@ -52,7 +52,13 @@ from pipeline.jobs.ends import (
 )
 from pipeline.jobs.frame_detail import away_from_other_depths, detail_maps, keep_inner_detail
 from pipeline.jobs.multiframe import restore_multiframe
-from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
+from pipeline.jobs.options import (
+    Progress,
+    StackOptions,
+    StackResult,
+    _no_progress,
+    megapixels,
+)
 from pipeline.jobs.result import (
     RESCALE_ABOVE,
     check_not_input,
@@ -113,8 +119,8 @@ def check_frame_size(stack: Stack, shape: tuple[int, ...], options: StackOptions
         )
     if rows * cols > options.max_pixels:
         raise InputError(
-            f"{first}: the frames are {cols}x{rows} px ({rows * cols / 1e6:.3g} Mpx), more than "
-            f"the limit of {options.max_pixels / 1e6:.3g} Mpx; raise it with --max-pixels if "
+            f"{first}: the frames are {cols}x{rows} px ({megapixels(rows * cols)} Mpx), more than "
+            f"the limit of {megapixels(options.max_pixels)} Mpx; raise it with --max-pixels if "
             "this is a real image (memory grows about 40 bytes per pixel)"
         )
 

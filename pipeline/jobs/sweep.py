@@ -26,7 +26,13 @@ from pipeline.errors import InputError
 from pipeline.io.probe import frame_info
 from pipeline.io.read import read_frame
 from pipeline.io.stackfile import Stack, sweep_profile
-from pipeline.jobs.options import Progress, StackOptions, StackResult, _no_progress
+from pipeline.jobs.options import (
+    Progress,
+    StackOptions,
+    StackResult,
+    _no_progress,
+    megapixels,
+)
 from pipeline.jobs.result import check_output, restore_image, write_result
 from pipeline.parallel.scheduler import _TaskProgress
 
@@ -82,8 +88,8 @@ def check_sweep_size(path: Path, lens: Lens, profile: Profile, options: StackOpt
         raise InputError(f"{path}: the image is {cols}x{rows} px; flexdof needs at least 8x8 px")
     if rows * cols > options.max_pixels:
         raise InputError(
-            f"{path}: the image is {cols}x{rows} px ({rows * cols / 1e6:.3g} Mpx), more than the "
-            f"limit of {options.max_pixels / 1e6:.3g} Mpx; raise it with --max-pixels"
+            f"{path}: the image is {cols}x{rows} px ({megapixels(rows * cols)} Mpx), more than the "
+            f"limit of {megapixels(options.max_pixels)} Mpx; raise it with --max-pixels"
         )
     p_lo, p_hi = profile.range_mm
     span = float(lens.blur_px(p_lo, p_hi))  # Eq. 2: a point focused at one end, seen at the other
