@@ -24,7 +24,7 @@ def _run(tmp_path, frames, caplog, **options):
 @pytest.mark.parametrize(
     ("indices", "warned"),
     [
-        # two frames 106 px of blur apart: softer than the sharpest frame in 6 of 9 regions
+        # two frames 106 px of blur apart: softer than the sharpest frame in 6 of 7 regions
         ((0, 5), True),
         # three frames 42 px apart: as good as focus-stack in 7 of 9 regions, not warned
         ((0, 2, 4), False),

@@ -208,8 +208,8 @@ def check_sparse_stack(stack: Stack, summary: dict) -> None:
     frames 53-106 px of blur apart see content at their own depths sharp once and blurred
     once, and content between them blurred twice, so the IPSF is no longer one kernel (mean
     spread 4.2-4.8, against 0.02-0.8 on the real stacks). On pcb7's frames 1 and 7 and amber's
-    0 and 5 the result is softer than the sharpest frame in 5-6 of 9 regions and as good as
-    focus-stack in 2 and 1 of them; ``--frame-guard`` takes them to 4 and 4
+    0 and 5 the result's edges are wider than the sharpest frame's in 7 of 9 and 6 of 7
+    regions, as good as focus-stack in 2 and 1 of 9; ``--frame-guard`` takes them to 4 and 4
     (``tests/benchmarks/results/real_regions/sparse/``). On three and four frames (spread
     1.7-2.7) the default held 4-7 of 9 and ``--frame-guard`` did not do better overall: no
     warning there."""
