@@ -269,8 +269,7 @@ def add_processing(parser: argparse.ArgumentParser, *, defaults: bool = True) ->
         True,
         "for real photographs: keep the result within the aligned frames' range, take "
         "the sharpest frame where it shows more detail, hold the noise to a frame's and "
-        "double a fitted blur span (slower; worse on stacks that follow the paper's model; "
-        "used anyway where the frames lie too far apart for one kernel, e.g. two frames)",
+        "double a fitted blur span (slower; worse on stacks that follow the paper's model)",
     )
     _switch(
         parser,

@@ -60,8 +60,7 @@ class StackOptions:
     # twice the fitted blur span. Better on real photographs (issue 13: 6-8/9 regions as
     # good as focus-stack; the default 2-8/9), worse on stacks that follow the paper's model
     # (up to 3.0 dB below the default on synthetic scenes, 4.3 dB with a fitted span) and
-    # 17-36% slower: off by default, except for a stack too sparse for one kernel
-    # (pipeline.jobs.stack.sparse_spread: two-frame stacks 10 -> 38 of 81 regions)
+    # 17-36% slower: off by default
     frame_guard: bool = False
     # keep the result to the aligned frames (pipeline.core.frame_support, pipeline.jobs.ends):
     # where every frame is flat, the fine band from the average; where an end frame's content
