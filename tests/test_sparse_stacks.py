@@ -66,7 +66,8 @@ def test_the_warning_is_not_given_when_its_advice_is_taken(tmp_path, shared_data
 def test_the_advice_helps_two_frames_at_their_planes(tmp_path):
     """The warning's advice against a truth: two frames (500 and 1600 mm) of two textured
     planes at those depths, noise 0.01, no lens (the span fitted). The default, whose one
-    kernel averages every depth between the frames, is warned of and gives 27.91 dB;
+    kernel averages every depth between the frames, has a spread above the warning's
+    threshold and gives 27.91 dB;
     ``--frame-guard`` gives 28.21, both far above either frame (22.3)."""
     from skimage import data
 

@@ -212,7 +212,7 @@ def check_sparse_stack(stack: Stack, summary: dict) -> None:
     the 73 regions with edges to measure, and 10 of 81 regions were as good as
     focus-stack's. ``--frame-guard`` took that to 38 of 81, every stack gaining, and 0.30 dB
     against a truth on two rendered planes at the frames' depths. It is not chosen
-    automatically: its sharpest-frame mosaic pastes frame-sized patches with hard edges
+    automatically: its mosaic of the sharpest frame per 4 px block pastes hard-edged patches
     where the frames' tones differ (amber's translucent layers), which the region measures
     do not count (``tests/benchmarks/results/real_regions/sparse/``). On three and four
     frames (spread 1.7-2.7) the default held 4-7 of 9 and ``--frame-guard`` did not do
