@@ -137,3 +137,92 @@ def test_grain_is_not_detail_where_the_composite_is_empty_at_the_centre():
     result = np.full(shape, 0.4, np.float32)
     keep_inner_detail(result, (grain * total, total), np.ones(shape, np.float32))
     assert float(np.std(result[20:-20, 20:130])) < 0.2 * 0.01
+
+
+def _maps(labels: np.ndarray) -> FocusMaps:
+    """Focus maps whose sharpest frame per pixel is ``labels`` (no frames needed)."""
+    maps = FocusMaps()
+    maps.sharpest = labels.astype(np.intp)
+    return maps
+
+
+def test_a_frames_map_opens_specks_away_and_smooths_alike_in_both_directions():
+    """Frame 1 is the sharpest in a 12 px square, a 3x3 block, and two specks of 2x3 and
+    3x2 px: the map is that region opened by a 3x3 square (the block stays, the specks go),
+    then smoothed by a Gaussian of ``MAP_SMOOTH_PX`` (scipy's, with OpenCV's reflected
+    border and 4-sigma reach), values under ``MIN_WEIGHT`` dropped. The labels are
+    symmetric under transposition, so the map must be too."""
+    from scipy import ndimage
+
+    from pipeline.jobs.frame_detail import MAP_SMOOTH_PX, MIN_WEIGHT
+
+    labels = np.zeros((40, 40), np.intp)
+    labels[:, -1] = 2  # the far end, so frame 1 is inner
+    labels[-1, :] = 2
+    labels[22:34, 22:34] = 1
+    labels[10:13, 10:13] = 1
+    labels[25:27, 4:7] = labels[4:7, 25:27] = 1  # 2x3 and 3x2: thinner than 3 px
+    weight = detail_maps(_maps(labels), np.arange(3.0)).weight(1)
+    opened = np.zeros((40, 40), np.float64)
+    opened[22:34, 22:34] = opened[10:13, 10:13] = 1.0
+    expected = ndimage.gaussian_filter(opened, MAP_SMOOTH_PX, mode="mirror", truncate=4.0)
+    expected[expected < MIN_WEIGHT] = 0
+    np.testing.assert_allclose(weight, expected, atol=2e-6)
+    np.testing.assert_allclose(weight, weight.T, atol=1e-6)  # float32 rounding only
+    assert weight[11, 11] > 0.4 and weight[25:27, 4:7].max() == 0
+
+
+def test_the_composite_share_is_whole_wherever_no_other_depth_is_near():
+    """Frames 0 | 1 | 2 | 3 of four sharpest in column strips, each next to a frame one
+    step away (no cut; 0 and 2, 1 and 3 are 40 px apart, farther than the 20 px their blur
+    and the bands reach): the share is 1 wherever the inner maps reach, their soft outer
+    edges included (where the total is under 1), and 0 where neither does."""
+    labels = np.zeros((40, 120), np.intp)
+    labels[:, 20:60], labels[:, 60:100], labels[:, 100:] = 1, 2, 3
+    detail = detail_maps(_maps(labels), np.arange(4.0))
+    away = away_from_other_depths(detail, span_px=40.0)
+    total = detail.weight(1) + detail.weight(2)
+    assert (total[20] < 0.9).sum() > 10  # the maps' soft edges are in the row
+    np.testing.assert_allclose(away[total > 0], 1.0, atol=1e-6)
+    assert away[total == 0].max() == 0
+
+
+@pytest.mark.parametrize("factor, first, last", [(1, 83, 116), (2, 87, 112)])
+def test_the_left_out_strip_is_half_the_blur_and_the_bands_reach_at_the_maps_scale(
+    factor, first, last
+):
+    """Frames 1 | 2 | 5 of seven sharpest in column strips split at 50 and 100 (positions
+    normalised: frames 2 and 5 are 0.5 apart), a span of 36 px: each of frames 2 and 5 sees
+    the other's content blurred to 18 px, so 9 px, plus the detail bands' reach
+    (``DETAIL_WINDOW * max(DETAIL_SIGMAS_PX)`` = 8 full-resolution px, 4 at maps of half
+    resolution) on each side of the edge is left out: columns 100 - 17 .. 99 + 17, or
+    100 - 13 .. 99 + 13. Beyond that strip the share is whole."""
+    labels = np.zeros((60, 150), np.intp)
+    labels[:, :50], labels[:, 50:100], labels[:, 100:] = 1, 2, 5
+    detail = detail_maps(_maps(labels), np.arange(7.0))
+    row = away_from_other_depths(detail, span_px=36.0, factor=factor)[30]
+    out = np.flatnonzero(row < 1e-6)
+    assert (out.min(), out.max(), out.size) == (first, last, last - first + 1)
+    np.testing.assert_allclose(row[first - 20 : first], 1.0, atol=1e-6)
+    np.testing.assert_allclose(row[last + 1 : last + 21], 1.0, atol=1e-6)
+
+
+def test_a_partly_weighted_composite_is_its_frame_not_a_dimmer_one():
+    """One frame's composite weighted 0.4 everywhere (a map's soft edge): ``sum m g / sum m``
+    is that frame, so a soft result comes as close to it as with full weight (a composite
+    read as 0.4 g would lend 0.4 of the detail, on a darker image)."""
+    truth = _texture(5)
+    soft = cv2.GaussianBlur(truth, (0, 0), 1.5)
+    everywhere = np.ones(truth.shape, np.float32)
+    results = []
+    for m in (0.4, 1.0):
+        result = soft.copy()
+        keep_inner_detail(result, (m * truth, np.full(truth.shape, m, np.float32)), everywhere)
+        results.append(result)
+    inner = np.s_[12:-12, 12:-12]
+    error = lambda a: float(np.sqrt(np.mean((a[inner] - truth[inner]) ** 2)))  # noqa: E731
+    assert error(results[1]) < 0.5 * error(soft)
+    # 0.4 of the weight lends 0.4 of each band's share: between the soft input and the
+    # full-weight result, and the same frame's detail (no loss of brightness)
+    assert error(results[1]) < error(results[0]) < error(soft)
+    assert abs(float(results[0][inner].mean()) - float(soft[inner].mean())) < 1e-3

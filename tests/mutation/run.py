@@ -308,6 +308,11 @@ FULL["core/deconvolve/gcv.py"] = [*_GCV, "tests/test_references.py"]
 MODULES["core/frame_support.py"] = ["tests/test_frame_support_reference.py",
                                     "tests/test_frame_support.py"]
 FULL["core/frame_support.py"] = MODULES["core/frame_support.py"]
+# issue 13's guards after the deconvolution (stop 54): cheap unit tests first
+MODULES["jobs/ends.py"] = ["tests/test_end_detail.py", "tests/test_end_depths.py"]
+FULL["jobs/ends.py"] = MODULES["jobs/ends.py"]
+MODULES["jobs/frame_detail.py"] = ["tests/test_frame_detail.py"]
+FULL["jobs/frame_detail.py"] = MODULES["jobs/frame_detail.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
