@@ -309,7 +309,8 @@ MODULES["core/frame_support.py"] = ["tests/test_frame_support_reference.py",
                                     "tests/test_frame_support.py"]
 FULL["core/frame_support.py"] = MODULES["core/frame_support.py"]
 # issue 13's guards after the deconvolution (stop 54): cheap unit tests first
-MODULES["jobs/ends.py"] = ["tests/test_end_detail.py", "tests/test_end_depths.py"]
+MODULES["jobs/ends.py"] = ["tests/test_end_pieces.py", "tests/test_end_detail.py",
+                            "tests/test_end_depths.py"]
 FULL["jobs/ends.py"] = MODULES["jobs/ends.py"]
 MODULES["jobs/frame_detail.py"] = ["tests/test_frame_detail.py"]
 FULL["jobs/frame_detail.py"] = MODULES["jobs/frame_detail.py"]
