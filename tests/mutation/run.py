@@ -314,6 +314,17 @@ MODULES["jobs/ends.py"] = ["tests/test_end_pieces.py", "tests/test_end_detail.py
 FULL["jobs/ends.py"] = MODULES["jobs/ends.py"]
 MODULES["jobs/frame_detail.py"] = ["tests/test_frame_detail.py"]
 FULL["jobs/frame_detail.py"] = MODULES["jobs/frame_detail.py"]
+_COLOUR_UNITS = [f"tests/test_end_detail.py::{name}" for name in (
+    "test_mean_grey_is_the_channels_mean_for_any_channel_count",
+    "test_scale_channels_gives_numpys_broadcast_products_in_place",
+    "test_move_grey_reaches_the_target_keeping_the_hue_where_it_can",
+    "test_colour_keeps_its_hue", "test_dark_and_undershooting_pixels_are_not_blown_up",
+    "test_colour_keeps_its_hue_and_dark_pixels_stay_finite")]
+MODULES["core/colour.py"] = ["tests/test_colour.py", "tests/test_io.py", *_COLOUR_UNITS]
+FULL["core/colour.py"] = ["tests/test_colour.py", "tests/test_io.py", "tests/test_end_detail.py"]
+MODULES["core/defocus.py"] = ["tests/test_defocus.py", "tests/test_frame_detail.py",
+                              "tests/test_end_depths.py"]
+FULL["core/defocus.py"] = MODULES["core/defocus.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
