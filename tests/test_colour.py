@@ -1,6 +1,6 @@
 """The colour helpers (:mod:`pipeline.core.colour`) on the inputs a deconvolution makes:
 values outside [0, 1] through the sRGB transfer functions, element by element against the
-standard's formulas in Python floats, and a grey image moved below 0 (stop 54's mutation
+standard's formulas in Python floats, and a grey image moved below 0 (stop 55's mutation
 run: the covering tests kept to [0, 1] and to positive targets)."""
 
 from __future__ import annotations

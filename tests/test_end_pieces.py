@@ -1,7 +1,7 @@
 """The small pieces of the ends' step (:mod:`pipeline.jobs.ends`), each against an
 independent computation: an end frame's own kernel at the correction's resolution, the
 boxes the two ends change, the reduced-resolution Gaussian window of the detail step, and
-the detail step's indifference to the frames' units (issue 13, stop 54's mutation run: the
+the detail step's indifference to the frames' units (issue 13, stop 55's mutation run: the
 covering tests are whole-stack runs that let these pieces drift)."""
 
 from __future__ import annotations
@@ -172,3 +172,26 @@ def test_the_band_noise_gain_is_the_variance_of_filtered_white_noise(fine, coars
     finer = noise if fine == 0 else cv2.GaussianBlur(noise, (0, 0), fine)
     band = (finer - cv2.GaussianBlur(noise, (0, 0), coarse))[40:-40, 40:-40]
     assert ends._band_noise_gain(fine, coarse) == pytest.approx(float(band.var()), rel=0.04)
+
+
+def test_black_frames_leave_a_black_result_and_no_share():
+    """A black end frame over a black result (a lens cap, a dark frame in the stack): no
+    scale to take, nothing changes, nothing is NaN, no band took over."""
+    result = np.zeros((40, 50, 3), np.float32)
+    share = ends.keep_end_detail(result, np.zeros((40, 50), np.float32),
+                                 np.ones((40, 50), np.float32), noise=0.0)
+    np.testing.assert_array_equal(result, 0.0)
+    assert share == 0.0
+
+
+def test_the_share_counts_where_a_band_took_over():
+    """The returned share: about all of the weighted area where the result is much softer
+    than the frame, none where the result is the frame itself (no band has more to give)."""
+    rng = np.random.default_rng(8)
+    truth = cv2.GaussianBlur(rng.standard_normal((80, 96)).astype(np.float32), (0, 0), 0.8)
+    truth = 0.4 + 0.1 * truth / truth.std()
+    weight = np.ones(truth.shape, np.float32)
+    soft = cv2.GaussianBlur(truth, (0, 0), 3.0)
+    assert ends.keep_end_detail(soft, truth, weight, noise=0.0) > 0.9
+    same = truth.copy()
+    assert ends.keep_end_detail(same, truth, weight, noise=0.0) == 0.0

@@ -308,7 +308,7 @@ FULL["core/deconvolve/gcv.py"] = [*_GCV, "tests/test_references.py"]
 MODULES["core/frame_support.py"] = ["tests/test_frame_support_reference.py",
                                     "tests/test_frame_support.py"]
 FULL["core/frame_support.py"] = MODULES["core/frame_support.py"]
-# issue 13's guards after the deconvolution (stop 54): cheap unit tests first
+# issue 13's guards after the deconvolution (stop 55): cheap unit tests first
 MODULES["jobs/ends.py"] = ["tests/test_end_pieces.py", "tests/test_end_detail.py",
                             "tests/test_end_depths.py"]
 FULL["jobs/ends.py"] = MODULES["jobs/ends.py"]
