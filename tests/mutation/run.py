@@ -322,8 +322,8 @@ _COLOUR_UNITS = [f"tests/test_end_detail.py::{name}" for name in (
     "test_colour_keeps_its_hue_and_dark_pixels_stay_finite")]
 MODULES["core/colour.py"] = ["tests/test_colour.py", "tests/test_io.py", *_COLOUR_UNITS]
 FULL["core/colour.py"] = ["tests/test_colour.py", "tests/test_io.py", "tests/test_end_detail.py"]
-MODULES["core/defocus.py"] = ["tests/test_defocus.py", "tests/test_frame_detail.py",
-                              "tests/test_end_depths.py"]
+MODULES["core/defocus.py"] = ["tests/test_defocus_pieces.py", "tests/test_defocus.py",
+                              "tests/test_frame_detail.py", "tests/test_end_depths.py"]
 FULL["core/defocus.py"] = MODULES["core/defocus.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
