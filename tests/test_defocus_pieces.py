@@ -113,3 +113,32 @@ def test_a_frames_exposure_does_not_change_its_normalised_image():
     once, thrice = defocus._normalised(frame), defocus._normalised(3.0 * frame)
     assert float(np.mean(once)) == pytest.approx(1.0, rel=1e-5)
     np.testing.assert_allclose(thrice, once, rtol=1e-5)
+
+
+@pytest.mark.parametrize("count, positions", [(3, [0.0, 1.0, 2.0, 3.0]), (1, [0.0])])
+def test_the_span_fit_refuses_frames_without_one_position_each_or_a_single_frame(
+    count, positions
+):
+    frames = render_stack(10.0, n=3)[0][:count]
+    with pytest.raises(InputError, match="need >= 2 frames with one position each"):
+        defocus.estimate_blur_span(frames, positions)
+
+
+def test_a_blur_span_under_a_pixel_is_fitted_not_refused():
+    frames, x = render_stack(10.0, n=3)
+    ends, _ = defocus.end_depths(frames, x, 0.5)
+    assert [e.frame for e in ends] == [0, 2]
+
+
+@pytest.mark.parametrize("others, first", [([1, 2, 3], 38), ([0], 44)])
+def test_other_depths_reach_half_their_blur_plus_the_fits(others, first):
+    """Frame 0 (an end) sharpest left of column 50, frame 3 (three frames away, x = 1)
+    right of it, a span of 12 px: frame 3's content lies blurred by 12 px in frame 0, so
+    half of that, 6 px, plus half the widest blur the fit of frame 0 compares (frames 1-3:
+    6 px more; itself alone: none) from column 50 is near: columns 38 on, or 44 on."""
+    sharpest = np.zeros((40, 100), np.intp)
+    sharpest[:, 50:] = 3
+    textured = np.ones(sharpest.shape, bool)
+    near = defocus.near_other_depths(sharpest, textured, np.linspace(0, 1, 4), 0, others, 12.0)
+    row = near[20]
+    assert not row[:first].any() and row[first:].all()
