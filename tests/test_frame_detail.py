@@ -5,15 +5,20 @@ ground truth the result comes closer to the truth."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
+from scipy import ndimage
 from skimage import data
 from test_engine import make_stack, positions_for
 
 from pipeline.core.colour import srgb_to_linear
+from pipeline.core.deconvolve.common import noise_sigma_2d
 from pipeline.core.defocus import FocusMaps
 from pipeline.core.quality import psnr
+from pipeline.jobs.ends import keep_end_detail
 from pipeline.jobs.frame_detail import away_from_other_depths, detail_maps, keep_inner_detail
 from pipeline.jobs.options import StackOptions
 from pipeline.jobs.stack import process_stack
@@ -153,10 +158,6 @@ def test_a_frames_map_opens_specks_away_and_smooths_alike_in_both_directions():
     reflected border and 4-sigma reach), values under 0.02 dropped. The labels are
     symmetric under transposition, so the map must be too. The maps are frozen: ``inner``
     is cached from them."""
-    import dataclasses
-
-    from scipy import ndimage
-
     labels = np.zeros((40, 40), np.intp)
     labels[:, -1] = 2  # the far end, so frame 1 is inner
     labels[-1, :] = 2
@@ -178,7 +179,7 @@ def test_a_frames_map_opens_specks_away_and_smooths_alike_in_both_directions():
 
 def test_the_composite_share_is_whole_wherever_no_other_depth_is_near():
     """Frames 0 | 1 | 2 | 3 of four sharpest in column strips, each next to a frame one
-    step away (no cut; 0 and 2, 1 and 3 are 40 px apart, farther than the 20 px their blur
+    step away (no cut; 0 and 2, 1 and 3 are 40 px apart, farther than the 21 px their blur
     and the bands reach): the share is 1 wherever the inner maps reach, their soft outer
     edges included (where the total is under 1), and 0 where neither does."""
     labels = np.zeros((40, 120), np.intp)
@@ -216,9 +217,6 @@ def test_a_partly_weighted_composite_is_its_frame_not_a_dimmer_one():
     is that frame (to float32 rounding), so the result is the frame's own detail handed over
     at weight 0.6 (:func:`~pipeline.jobs.ends.keep_end_detail` with the frame itself and its grain
     measured on it); a composite read as 0.6 g would lend a darker frame's weaker bands."""
-    from pipeline.core.deconvolve.common import noise_sigma_2d
-    from pipeline.jobs.ends import keep_end_detail
-
     truth = _texture(5)
     soft = cv2.GaussianBlur(truth, (0, 0), 1.5)
     m = np.full(truth.shape, 0.6, np.float32)
