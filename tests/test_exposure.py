@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from hypothesis import example, given, settings
@@ -195,3 +196,34 @@ def test_the_quality_method_reads_the_frames_divided_too(tmp_path):
     k = float(np.sum(drift.image * plain.image) / np.sum(drift.image**2))
     # measured: 53.17 dB; 46.63 with the quality method's frames read as shot
     assert psnr(k * drift.image, plain.image) > 50.0
+
+
+def test_clipped_and_black_areas_are_left_out_of_the_ratios():
+    """A third of the scene at 0.9 (clipped to white in the frame shot at 1.25) and a
+    third black (its ratios are noise over noise): over what is left the gains are found
+    within 0.2%. Counting the clipped block read the bright frame 2.5% low, the black area
+    the dark frame 0.9% high (measured with those steps removed)."""
+    rng = np.random.default_rng(0)
+    texture = cv2.GaussianBlur(rng.random((256, 256)).astype(np.float32), (0, 0), 2)
+    scene = 0.25 + 0.3 * (texture - texture.min()) / np.ptp(texture)
+    scene[:, :96] = 0.9
+    scene[:, 180:] = 0.0
+    gains = np.array([1.0, 1.25, 0.8])
+    frames = [
+        np.clip(g * cv2.GaussianBlur(scene, (0, 0), 1 + 2 * k)
+                + rng.normal(0, 0.003, scene.shape), 0, 1).astype(np.float32)
+        for k, g in enumerate(gains)
+    ]
+    np.testing.assert_allclose(exposure_gains(frames, [1, 1, 1]), gains / gains.mean(),
+                               rtol=2e-3)
+
+
+def test_a_frame_weighted_zero_is_measured_and_a_negative_weight_refused(scene):
+    """Gains 1, 0.5, 2: with weights 1, 0, 1 the stack's exposure is frames 0 and 2's
+    (``sum w g = 1``: 1.5 in all), so the gains read 1 / 1.5, 0.5 / 1.5, 2 / 1.5; a
+    negative weight is no weighted sum: all 1."""
+    frames = _defocused(scene, [0, 3, 6])
+    lit = [f * np.float32(g) for f, g in zip(frames, (1.0, 0.5, 2.0))]
+    np.testing.assert_allclose(exposure_gains(lit, [1, 0, 1]), np.array([1.0, 0.5, 2.0]) / 1.5,
+                               rtol=3e-3)
+    np.testing.assert_array_equal(exposure_gains(lit, [1, -0.5, 1]), np.ones(3))

@@ -325,6 +325,8 @@ FULL["core/colour.py"] = ["tests/test_colour.py", "tests/test_io.py", "tests/tes
 MODULES["core/defocus.py"] = ["tests/test_defocus_pieces.py", "tests/test_defocus.py",
                               "tests/test_frame_detail.py", "tests/test_end_depths.py"]
 FULL["core/defocus.py"] = MODULES["core/defocus.py"]
+MODULES["core/exposure.py"] = ["tests/test_exposure.py"]
+FULL["core/exposure.py"] = MODULES["core/exposure.py"]
 _WF = [  # the workflow tests, cheapest first (measured, 2026-11-26), without the 3 slowest
     "tests/test_workflow_units.py",
     "tests/test_workflow_reliability.py::test_scheduler_address_without_port_is_an_input_error",
