@@ -83,14 +83,14 @@ def test_two_frames_are_enough_for_both_fits():
     assert [e.frame for e in ends] == [0, 1] and sharpest.shape == frames[0].shape
 
 
-@pytest.mark.parametrize("positions, span, what", [
-    ([0.0, 1.0, 2.0, 3.0], 10.0, "three frames, four positions"),
-    ([1.0, 1.0, 1.0], 10.0, "one position"),
-    ([0.0, 1.0, 2.0], 0.0, "no blur span"),
-    ([0.0, 1.0, 2.0], -3.0, "a negative blur span"),
-    ([0.0], 10.0, "one frame"),
+@pytest.mark.parametrize("positions, span", [
+    pytest.param([0.0, 1.0, 2.0, 3.0], 10.0, id="three frames, four positions"),
+    pytest.param([1.0, 1.0, 1.0], 10.0, id="one position"),
+    pytest.param([0.0, 1.0, 2.0], 0.0, id="no blur span"),
+    pytest.param([0.0, 1.0, 2.0], -3.0, id="a negative blur span"),
+    pytest.param([0.0], 10.0, id="one frame"),
 ])
-def test_end_depths_refuse_what_they_cannot_fit(positions, span, what):
+def test_end_depths_refuse_what_they_cannot_fit(positions, span):
     frames, _ = render_stack(10.0, n=3)
     frames = frames[: len(positions)]  # one frame per position, or three for four
     with pytest.raises(InputError, match="need >= 2 frames"):
